@@ -1,0 +1,87 @@
+# SPDX-License-Identifier: BSD-3-Clause
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import real
+from uwbfuse.cli import main
+from uwbfuse.config import Config, RobustKernel, dump_config, load_config
+from uwbfuse.errors import ConfigError
+
+
+def test_dump_config_round_trips(tmp_path: Path) -> None:
+    """test that the dumped defaults parse back to the defaults"""
+    p = tmp_path / "d.toml"
+    p.write_text(dump_config())
+    assert load_config(p) == Config()
+
+
+def test_misspelt_key_is_named(tmp_path: Path) -> None:
+    """test that an unknown key is an error naming the dotted key"""
+    p = tmp_path / "bad.toml"
+    p.write_text('[uwb]\nrange_feild = "r"\n')
+    with pytest.raises(ConfigError, match=r"unknown config key 'uwb.range_feild'"):
+        load_config(p)
+
+
+def test_bad_value_is_named(tmp_path: Path) -> None:
+    """test that a wrong-typed value names its key"""
+    p = tmp_path / "bad.toml"
+    p.write_text("[uwb]\nsigma = -1.0\n")
+    with pytest.raises(ConfigError, match=r"'uwb.sigma'"):
+        load_config(p)
+
+
+def test_contract_example_parses(tmp_path: Path) -> None:
+    """test that the contract's example config (anchors, offsets, wheel) parses"""
+    p = tmp_path / "c.toml"
+    p.write_text(
+        """
+[anchors]
+A0 = [0.0, 0.0, 1.5]
+A1 = [40.0, 0.0, 1.5]
+[extrinsics]
+tag_in_base = [0.0, 0.0, 0.3]
+imu_in_base = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+[topics]
+imu = "/imu"
+[uwb]
+anchor_field = "anchor_id"
+robust_kernel = "cauchy"
+[uwb.range_offset]
+A0 = 0.1
+[wheel]
+radius = 0.1
+track_width = 0.5
+"""
+    )
+    c = load_config(p)
+    assert c.anchors["A1"] == (40.0, 0.0, 1.5)
+    assert c.uwb.range_offset == {"A0": 0.1}
+    assert c.uwb.robust_kernel is RobustKernel.CAUCHY
+    assert c.extrinsics.tag_in_base == (0.0, 0.0, 0.3)
+
+
+@pytest.mark.parametrize("name", ["labyrinth", "isas-walk1", "jackal-imu-odom"])
+def test_real_configs_parse(name: str) -> None:
+    """test that every shipped real-data config is accepted"""
+    load_config(real(f"{name}/config.toml"))
+
+
+def test_cli_bad_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """test that a misspelt key gives exit 2 and a single stderr line"""
+    p = tmp_path / "bad.toml"
+    p.write_text("[graph]\nkeyframe_rat = 5\n")
+    code = main(["run", str(tmp_path / "x.mcap"), "--method", "odom", "--config", str(p)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and "graph.keyframe_rat" in err[0]
+
+
+def test_cli_missing_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """test that a missing config file is a one-line error"""
+    code = main(["dump-config"])
+    assert code == 0
+    code = main(["run", "x.mcap", "--method", "odom", "--config", str(tmp_path / "no.toml")])
+    assert code == 2
+    assert "config file not found" in capsys.readouterr().err

@@ -1,0 +1,211 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The `uwbfuse` command line: parses arguments and calls one library function per command.
+
+Known errors (`UwbfuseError`) become one line on stderr and exit status 2; heavy imports
+happen inside the commands so `uwbfuse --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from uwbfuse.errors import UwbfuseError
+
+EXAMPLES = """examples:
+  uwbfuse simulate warehouse.mcap --scenario warehouse --duration 120 --seed 1
+  uwbfuse run warehouse.mcap --method isam2 -o est.tum
+  uwbfuse eval est.tum --gt warehouse.mcap
+  uwbfuse compare warehouse.mcap --methods isam2,batch,ekf --out results/
+  uwbfuse dump-config > uwbfuse.toml
+"""
+
+METHOD_HELP = "isam2 | isam2-smoothed | batch | ekf | ukf | wls | lkf | imu | odom"
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.sim.simulator import simulate
+
+    sim = simulate(args.scenario, duration_s=args.duration, seed=args.seed)
+    write_contract_log(args.out, sim)
+    span = sim.time_span_ns()
+    print(
+        f"wrote {args.out}: scenario {args.scenario}, {(span[1] - span[0]) / 1e9:.1f} s, "
+        f"{len(sim.imu or [])} imu, {len(sim.wheel or [])} wheel, "
+        f"{len(sim.ranges or [])} ranges, {len(sim.anchors or [])} anchors"
+    )
+    return 0
+
+
+def _default_tum_path(log_path: str, method: str) -> Path:
+    stem = Path(log_path.rstrip("/")).name.removesuffix(".mcap")
+    return Path(f"{stem}.{method}.tum")
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from uwbfuse.config import load_config
+    from uwbfuse.estimator import Method
+    from uwbfuse.pipeline import run_log
+
+    config = load_config(args.config)
+    method = Method(args.method)
+    out = Path(args.output) if args.output else _default_tum_path(args.log, method.value)
+    res = run_log(args.log, method, config, tum_out=out, mcap_out=args.mcap_out)
+    lat_ms = res.step_latency_s * 1e3
+    print(
+        f"{method.value}: {len(res.trajectory)} poses -> {out}"
+        + (f" and {args.mcap_out}" if args.mcap_out else "")
+    )
+    print(
+        f"log {res.log_duration_s:.1f} s, read {res.read_wall_s:.2f} s, estimate "
+        f"{res.estimate_wall_s:.2f} s ({res.realtime_factor:.0f}x real time), update p50 "
+        f"{np.median(lat_ms):.2f} ms p99 {np.percentile(lat_ms, 99):.2f} ms"
+    )
+    from uwbfuse.report import format_report
+
+    for line in format_report(res.report):
+        print(line)
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from uwbfuse.eval.command import evaluate_files
+
+    result = evaluate_files(
+        args.est, args.gt, config_path=args.config, align=args.align, max_dt=args.max_dt
+    )
+    print(result.table())
+    if args.json:
+        result.write_json(args.json)
+    return 0
+
+
+def _cmd_dump_config(args: argparse.Namespace) -> int:
+    from uwbfuse.config import dump_config
+
+    sys.stdout.write(dump_config())
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from uwbfuse.compare import compare_log
+
+    compare_log(args.log, methods=args.methods, config_path=args.config, out_dir=args.out)
+    return 0
+
+
+def _cmd_montecarlo(args: argparse.Namespace) -> int:
+    from uwbfuse.montecarlo import montecarlo
+
+    montecarlo(
+        scenario=args.scenario, runs=args.runs, duration_s=args.duration,
+        methods=args.methods, out_dir=args.out, scheduler=args.scheduler,
+    )
+    return 0
+
+
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from uwbfuse.fleet import batch_run
+
+    batch_run(
+        args.logs, method=args.method, config_path=args.config, out_dir=args.out_dir,
+        scheduler=args.scheduler,
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="uwbfuse",
+        description="Factor-graph localisation from IMU, wheel odometry and UWB ranges.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("simulate", help="write a simulated contract log (MCAP)")
+    s.add_argument("out", metavar="OUT.mcap")
+    s.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
+    s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_cmd_simulate)
+
+    r = sub.add_parser("run", help="estimate a trajectory from a log")
+    r.add_argument("log", metavar="LOG", help=".mcap file or rosbag2 directory")
+    r.add_argument("--method", required=True, help=METHOD_HELP)
+    r.add_argument("--config", metavar="FILE")
+    r.add_argument("-o", "--output", metavar="EST.tum", help="default: <log>.<method>.tum")
+    r.add_argument("--mcap-out", metavar="EST.mcap")
+    r.set_defaults(func=_cmd_run)
+
+    e = sub.add_parser("eval", help="score a TUM trajectory against ground truth")
+    e.add_argument("est", metavar="EST.tum")
+    e.add_argument("--gt", required=True, metavar="GT.tum|LOG")
+    e.add_argument("--config", metavar="FILE", help="topics, when --gt is a log")
+    e.add_argument("--align", default="none", choices=["none", "se2", "se3"])
+    e.add_argument("--max-dt", type=float, default=0.02, help="association tolerance, s")
+    e.add_argument("--json", metavar="FILE", help="also write the metrics as JSON")
+    e.set_defaults(func=_cmd_eval)
+
+    c = sub.add_parser("compare", help="run several methods on one log: table and plots")
+    c.add_argument("log", metavar="LOG")
+    c.add_argument("--methods", default="isam2,batch,ekf,ukf,wls,imu,odom")
+    c.add_argument("--config", metavar="FILE")
+    c.add_argument("--out", default="compare_out", metavar="DIR")
+    c.set_defaults(func=_cmd_compare)
+
+    m = sub.add_parser("montecarlo", help="repeat simulated runs over seeds")
+    m.add_argument("--scenario", default="warehouse")
+    m.add_argument("--runs", type=int, default=20)
+    m.add_argument("--duration", type=float, default=200.0)
+    m.add_argument("--methods", default="isam2,ekf,imu")
+    m.add_argument("--out", default="montecarlo_out", metavar="DIR")
+    m.add_argument("--scheduler", metavar="ADDRESS")
+    m.set_defaults(func=_cmd_montecarlo)
+
+    b = sub.add_parser("batch", help="run one method over many logs")
+    b.add_argument("logs", nargs="+", metavar="LOG")
+    b.add_argument("--method", required=True, help=METHOD_HELP)
+    b.add_argument("--config", metavar="FILE")
+    b.add_argument("--out-dir", default="batch_out", metavar="DIR")
+    b.add_argument("--scheduler", metavar="ADDRESS")
+    b.set_defaults(func=_cmd_batch)
+
+    d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
+    d.set_defaults(func=_cmd_dump_config)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `uwbfuse` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if getattr(args, "method", None) is not None:
+        from uwbfuse.estimator import Method
+
+        try:
+            Method(args.method)
+        except ValueError:
+            parser.error(f"unknown method {args.method!r}; one of: {METHOD_HELP}")
+    try:
+        return int(args.func(args))
+    except UwbfuseError as e:
+        print(f"uwbfuse {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"uwbfuse {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,284 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Typed configuration: the contract's TOML file parsed into pydantic models.
+
+Precedence: defaults < TOML file < command-line options. Unknown keys are errors that name
+the key (`extra="forbid"`). Every field documents its unit in its description;
+`uwbfuse dump-config` prints the defaults with those descriptions as comments.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from enum import StrEnum
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from uwbfuse.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class RobustKernel(StrEnum):
+    """Robust loss for UWB range residuals."""
+
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    TUKEY = "tukey"
+    DCS = "dcs"
+    GEMAN_MCCLURE = "geman_mcclure"
+    NONE = "none"
+
+
+class Extrinsics(_Section):
+    tag_in_base: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="UWB antenna position in the base frame, metres"
+    )
+    imu_in_base: tuple[float, float, float, float, float, float, float] = Field(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+        description="IMU pose in the base frame: x y z (m) qx qy qz qw",
+    )
+
+
+class Topics(_Section):
+    imu: str = Field("/imu", description="sensor_msgs/msg/Imu topic")
+    wheel_odom: str = Field(
+        "/wheel_odom", description="nav_msgs/msg/Odometry or sensor_msgs/msg/JointState topic"
+    )
+    uwb: str = Field("/uwb/range", description="UWB range topic")
+    ground_truth: str = Field("/ground_truth", description="ground-truth pose topic (eval only)")
+
+
+class UwbConfig(_Section):
+    anchor_field: str = Field(
+        "anchor_id", description="dotted path to the anchor id (types other than Range)"
+    )
+    range_field: str = Field("range", description="dotted path to the range in metres")
+    array_field: str = Field("", description="array of ranges in one message ('' = none)")
+    valid_field: str = Field("", description="boolean/integer validity flag ('' = none)")
+    range_offset: dict[str, float] = Field(
+        default_factory=dict, description="per-anchor offset subtracted from ranges, metres"
+    )
+    min_range: float = Field(0.0, description="ranges below this are dropped, metres")
+    max_range: float = Field(200.0, description="ranges above this are dropped, metres")
+    sigma: float = Field(0.10, gt=0, description="range noise std for LOS ranges, metres")
+    robust_kernel: RobustKernel = Field(
+        RobustKernel.HUBER, description="huber | cauchy | tukey | dcs | geman_mcclure | none"
+    )
+    kernel_threshold: float = Field(
+        1.345, gt=0, description="robust-kernel threshold, in sigmas"
+    )
+
+
+class WheelConfig(_Section):
+    radius: float = Field(0.1, gt=0, description="wheel radius for JointState input, metres")
+    track_width: float = Field(0.5, gt=0, description="left-right wheel distance, metres")
+    left_joint: str = Field("left_wheel_joint", description="JointState name of the left wheel")
+    right_joint: str = Field(
+        "right_wheel_joint", description="JointState name of the right wheel"
+    )
+    sigma_v: float = Field(0.05, gt=0, description="forward-speed noise per sample, m/s")
+    sigma_omega: float = Field(0.05, gt=0, description="yaw-rate noise per sample, rad/s")
+    sigma_lateral: float = Field(
+        0.02, gt=0, description="non-holonomic lateral-speed noise, m/s"
+    )
+
+
+class ImuConfig(_Section):
+    gravity: float = Field(9.81, gt=0, description="gravity magnitude, m/s^2")
+    accel_noise_density: float = Field(
+        4.0e-3, gt=0, description="accelerometer white noise, m/s^2/sqrt(Hz)"
+    )
+    gyro_noise_density: float = Field(
+        3.0e-4, gt=0, description="gyroscope white noise, rad/s/sqrt(Hz)"
+    )
+    accel_bias_random_walk: float = Field(
+        5.0e-4, gt=0, description="accelerometer bias random walk, m/s^3/sqrt(Hz)"
+    )
+    gyro_bias_random_walk: float = Field(
+        2.0e-5, gt=0, description="gyroscope bias random walk, rad/s^2/sqrt(Hz)"
+    )
+    accel_bias_sigma: float = Field(
+        0.2, gt=0, description="prior std of the initial accelerometer bias, m/s^2"
+    )
+    gyro_bias_sigma: float = Field(
+        0.02, gt=0, description="prior std of the initial gyroscope bias, rad/s"
+    )
+
+
+class InitConfig(_Section):
+    standstill_window: float = Field(
+        0.5, gt=0, description="minimum still time used for gravity/gyro bias, seconds"
+    )
+    standstill_gyro_max: float = Field(
+        0.03, gt=0, description="gyro norm below which the IMU counts as still, rad/s"
+    )
+    standstill_accel_std_max: float = Field(
+        0.15, gt=0, description="accel std below which the IMU counts as still, m/s^2"
+    )
+    min_motion: float = Field(
+        0.10, gt=0, description="wheel speed that counts as motion, m/s"
+    )
+
+
+class GraphConfig(_Section):
+    keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
+    lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
+    planar: Literal["auto", "on", "off"] = Field(
+        "auto", description="soft planar-motion constraint: auto = on when the log has wheels"
+    )
+    planar_sigma_z: float = Field(0.01, gt=0, description="planar constraint std on z, m")
+    planar_sigma_tilt: float = Field(
+        0.02, gt=0, description="planar constraint std on roll/pitch, rad"
+    )
+    estimate_range_bias: bool = Field(
+        True, description="estimate a constant per-anchor range bias"
+    )
+    range_bias_sigma: float = Field(0.3, gt=0, description="prior std of range biases, m")
+    estimate_range_scale: bool = Field(
+        False, description="also estimate a per-anchor range scale factor"
+    )
+    range_scale_sigma: float = Field(
+        0.05, gt=0, description="prior std of range scale factors (1 = none)"
+    )
+    nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
+    marginal_covariances: bool = Field(
+        False, description="batch: write marginal covariances beside the trajectory"
+    )
+
+
+class FilterConfig(_Section):
+    gate_probability: float = Field(
+        0.999, gt=0, lt=1, description="chi-square innovation gate (0..1); 1 - p is rejected"
+    )
+    gating: bool = Field(True, description="reject ranges outside the innovation gate")
+
+
+class UkfConfig(_Section):
+    alpha: float = Field(1e-3, gt=0, description="sigma-point spread (scaled UKF)")
+    beta: float = Field(2.0, description="prior-distribution parameter (2 for Gaussian)")
+    kappa: float = Field(0.0, description="secondary scaling parameter")
+
+
+class WlsConfig(_Section):
+    nlos_mean: float = Field(0.114, description="NLOS range error mean, metres (Qiu 2022)")
+    nlos_std: float = Field(0.145, gt=0, description="NLOS range error std, metres")
+    los_std: float = Field(0.026, gt=0, description="LOS range error std, metres")
+    window: float = Field(0.2, gt=0, description="epoch length for grouping ranges, seconds")
+
+
+class OutputConfig(_Section):
+    rate: float = Field(10.0, gt=0, description="output poses per second for filters, Hz")
+
+
+class Config(_Section):
+    """The whole configuration. `anchors` may stay empty when the log carries them."""
+
+    anchors: dict[str, tuple[float, float, float]] = Field(
+        default_factory=dict, description="anchor id -> [x, y, z], metres, map frame"
+    )
+    extrinsics: Extrinsics = Field(default_factory=Extrinsics)
+    topics: Topics = Field(default_factory=Topics)
+    uwb: UwbConfig = Field(default_factory=UwbConfig)
+    wheel: WheelConfig = Field(default_factory=WheelConfig)
+    imu: ImuConfig = Field(default_factory=ImuConfig)
+    init: InitConfig = Field(default_factory=InitConfig)
+    graph: GraphConfig = Field(default_factory=GraphConfig)
+    ekf: FilterConfig = Field(default_factory=FilterConfig)
+    ukf: UkfConfig = Field(default_factory=UkfConfig)
+    wls: WlsConfig = Field(default_factory=WlsConfig)
+    output: OutputConfig = Field(default_factory=OutputConfig)
+
+    @field_validator("anchors")
+    @classmethod
+    def _finite_anchors(
+        cls, v: dict[str, tuple[float, float, float]]
+    ) -> dict[str, tuple[float, float, float]]:
+        for k, xyz in v.items():
+            if not all(math.isfinite(c) for c in xyz):
+                raise ValueError(f"anchor {k!r} has a non-finite coordinate")
+        return v
+
+
+def _format_validation_error(source: str, err: ValidationError) -> str:
+    first = err.errors()[0]
+    key = ".".join(str(p) for p in first["loc"])
+    if first["type"] == "extra_forbidden":
+        return f"{source}: unknown config key '{key}'"
+    return f"{source}: bad value for '{key}': {first['msg']}"
+
+
+def config_from_dict(data: dict[str, Any], source: str = "config") -> Config:
+    """Validate a nested dict (as TOML gives it) into a `Config`."""
+    try:
+        return Config.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(_format_validation_error(source, e)) from None
+
+
+def load_config(path: str | Path | None) -> Config:
+    """Read the TOML file at `path` (None -> defaults). Raises ConfigError with the key."""
+    if path is None:
+        return Config()
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: config file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{p}: config path is a directory, expected a TOML file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    return config_from_dict(data, str(p))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, StrEnum):
+        return f'"{v.value}"'
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(v)
+
+
+def dump_config(cfg: Config | None = None) -> str:
+    """The config as TOML with each field's description (units) as a comment.
+
+    Hand-written: the TOML writers on PyPI (tomli-w) cannot emit comments, and the comments
+    are the point of `dump-config`.
+    """
+    cfg = cfg or Config()
+    lines: list[str] = ["# uwbfuse configuration (units: SI, angles in radians)"]
+
+    def emit_table(name: str, model: BaseModel) -> None:
+        lines.append("")
+        lines.append(f"[{name}]")
+        subtables: list[tuple[str, dict[str, Any], str]] = []
+        for fname, finfo in type(model).model_fields.items():
+            value = getattr(model, fname)
+            desc = finfo.description or ""
+            if isinstance(value, dict):
+                subtables.append((f"{name}.{fname}", value, desc))
+                continue
+            lines.append(f"{fname} = {_toml_value(value)}  # {desc}".rstrip(" #"))
+        for sname, d, desc in subtables:
+            lines.append("")
+            lines.append(f"[{sname}]  # {desc}")
+            lines.extend(f'"{k}" = {_toml_value(v)}' for k, v in d.items())
+
+    lines.append("")
+    lines.append(f"[anchors]  # {Config.model_fields['anchors'].description}")
+    lines.extend(f'"{k}" = {_toml_value(list(v))}' for k, v in cfg.anchors.items())
+    for fname in type(cfg).model_fields:
+        if fname == "anchors":
+            continue
+        emit_table(fname, getattr(cfg, fname))
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,38 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""One root error type and a subclass per module.
+
+The CLI turns any `UwbfuseError` into one line on stderr and exit status 2; anything else
+escaping to the CLI is a bug.
+"""
+
+
+class UwbfuseError(Exception):
+    """Root of every error uwbfuse raises on purpose (bad input, bad config, ...)."""
+
+
+class ConfigError(UwbfuseError):
+    """The TOML config is unreadable, has an unknown key or a bad value."""
+
+
+class LogReadError(UwbfuseError):
+    """A log cannot be read: missing, not MCAP, truncated beyond use, missing topic."""
+
+
+class AnchorMapError(UwbfuseError):
+    """No anchor map (neither `[anchors]` nor the `uwb_anchors` metadata record)."""
+
+
+class EstimatorError(UwbfuseError):
+    """An estimator cannot run on this input (e.g. a sensor it needs is absent)."""
+
+
+class TrajectoryFileError(UwbfuseError):
+    """A trajectory file (TUM) cannot be read or written."""
+
+
+class EvaluationError(UwbfuseError):
+    """Evaluation impossible: no overlap in time, too few associated poses, ..."""
+
+
+class SimulationError(UwbfuseError):
+    """Unknown scenario or impossible simulation parameters."""

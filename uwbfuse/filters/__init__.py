@@ -1,0 +1,2 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Kalman baselines, UWB-only positioning and dead reckoning (no GTSAM graph)."""

@@ -1,0 +1,190 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Columnar sensor streams: one set of numpy arrays per stream, sorted by stamp.
+
+Times are integer nanoseconds (int64) on the log's stamp clock (`header.stamp`). Every
+stream is sorted by stamp with exact duplicates removed by the reader; a stream that a log
+does not have is `None` in `SensorLog`.
+
+Frames:
+- IMU: angular velocity (rad/s) and specific force (m/s^2, +9.81 on z when level and
+  still) in the IMU frame (REP-145); `Extrinsics.imu_in_base` maps it to the base frame.
+- Wheels: forward speed v (m/s) and yaw rate omega (rad/s) of the base frame, each the mean
+  over the interval that ends at its stamp.
+- Ranges: tag-antenna-to-anchor distance (m), anchor given as an index into `AnchorMap`.
+- Ground truth and trajectories: pose of the base frame in the map frame (anchor frame,
+  z up), quaternions in (x, y, z, w) order.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+NS_PER_S = 1_000_000_000
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def _check_len(name: str, t_ns: I64, *arrays: NDArray) -> None:
+    n = len(t_ns)
+    for a in arrays:
+        if len(a) != n:
+            raise ValueError(f"{name}: column lengths differ ({n} stamps, {len(a)} values)")
+
+
+@dataclass(frozen=True)
+class ImuStream:
+    """IMU samples in the IMU frame: gyro (N,3) rad/s, accel = specific force (N,3) m/s^2."""
+
+    t_ns: I64
+    gyro: F64
+    accel: F64
+
+    def __post_init__(self) -> None:
+        _check_len("imu", self.t_ns, self.gyro, self.accel)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def slice(self, start: int, stop: int) -> ImuStream:
+        """Rows [start, stop) as a new stream sharing memory."""
+        return ImuStream(self.t_ns[start:stop], self.gyro[start:stop], self.accel[start:stop])
+
+
+@dataclass(frozen=True)
+class WheelStream:
+    """Wheel odometry of the base frame: v (N,) m/s forward, omega (N,) rad/s yaw rate.
+
+    Each sample is the mean velocity over the interval that ends at its stamp.
+    """
+
+    t_ns: I64
+    v: F64
+    omega: F64
+
+    def __post_init__(self) -> None:
+        _check_len("wheel", self.t_ns, self.v, self.omega)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def slice(self, start: int, stop: int) -> WheelStream:
+        return WheelStream(self.t_ns[start:stop], self.v[start:stop], self.omega[start:stop])
+
+
+@dataclass(frozen=True)
+class RangeStream:
+    """UWB ranges: anchor (N,) int index into `AnchorMap.ids`, range (N,) metres.
+
+    Ranges are as measured, minus any configured `[uwb.range_offset]`.
+    """
+
+    t_ns: I64
+    anchor: NDArray[np.int32]
+    range: F64
+
+    def __post_init__(self) -> None:
+        _check_len("uwb", self.t_ns, self.anchor, self.range)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    def slice(self, start: int, stop: int) -> RangeStream:
+        return RangeStream(self.t_ns[start:stop], self.anchor[start:stop], self.range[start:stop])
+
+
+@dataclass(frozen=True)
+class PoseStream:
+    """Poses of the base frame in the map frame: position (N,3) m, quat_xyzw (N,4).
+
+    `has_orientation` is False when the source carries position only (identity quaternions).
+    """
+
+    t_ns: I64
+    position: F64
+    quat_xyzw: F64
+    has_orientation: bool = True
+
+    def __post_init__(self) -> None:
+        _check_len("poses", self.t_ns, self.position, self.quat_xyzw)
+
+    def __len__(self) -> int:
+        return len(self.t_ns)
+
+    @property
+    def t_s(self) -> F64:
+        """Stamps in seconds (float64)."""
+        return self.t_ns.astype(np.float64) / NS_PER_S
+
+
+@dataclass(frozen=True)
+class AnchorMap:
+    """Fixed UWB anchors: ids as strings, positions (M,3) in metres in the map frame."""
+
+    ids: tuple[str, ...]
+    positions: F64
+
+    def __post_init__(self) -> None:
+        if self.positions.shape != (len(self.ids), 3):
+            raise ValueError("anchor positions must be (M,3) with one row per id")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index(self, anchor_id: str) -> int:
+        return self.ids.index(anchor_id)
+
+    @classmethod
+    def from_dict(cls, anchors: dict[str, tuple[float, float, float] | list[float]]) -> AnchorMap:
+        ids = tuple(str(k) for k in anchors)
+        pos = np.array([list(anchors[k]) for k in anchors], dtype=np.float64).reshape(-1, 3)
+        return cls(ids, pos)
+
+
+@dataclass
+class ReadReport:
+    """What a reader counted while reading: messages per topic and skips by reason."""
+
+    messages: Counter[str] = field(default_factory=Counter)
+    skipped: Counter[str] = field(default_factory=Counter)
+    warnings: list[str] = field(default_factory=list)
+
+    def skip(self, reason: str, n: int = 1) -> None:
+        if n:
+            self.skipped[reason] += n
+
+    def lines(self) -> list[str]:
+        """Human-readable summary, one line per skip reason and warning."""
+        out = [f"skipped {n} ({reason})" for reason, n in sorted(self.skipped.items())]
+        return out + list(self.warnings)
+
+
+@dataclass
+class SensorLog:
+    """Everything an estimator may use from one log, plus ground truth for evaluation only.
+
+    Estimators must never read `ground_truth`.
+    """
+
+    imu: ImuStream | None = None
+    wheel: WheelStream | None = None
+    ranges: RangeStream | None = None
+    anchors: AnchorMap | None = None
+    ground_truth: PoseStream | None = None
+    source: str = ""
+    report: ReadReport = field(default_factory=ReadReport)
+
+    def time_span_ns(self) -> tuple[int, int]:
+        """First and last stamp over the sensor streams (ground truth excluded)."""
+        firsts, lasts = [], []
+        for s in (self.imu, self.wheel, self.ranges):
+            if s is not None and len(s):
+                firsts.append(int(s.t_ns[0]))
+                lasts.append(int(s.t_ns[-1]))
+        if not firsts:
+            raise ValueError("log has no sensor data")
+        return min(firsts), max(lasts)
