@@ -36,3 +36,7 @@ class EvaluationError(UwbfuseError):
 
 class SimulationError(UwbfuseError):
     """Unknown scenario or impossible simulation parameters."""
+
+
+class FleetError(UwbfuseError):
+    """A batch or Monte Carlo study cannot run: no dask, unreachable scheduler, no workers."""
