@@ -123,6 +123,22 @@ class InitConfig(_Section):
     min_motion: float = Field(
         0.10, gt=0, description="wheel speed that counts as motion, m/s"
     )
+    level_window: float = Field(
+        1.0, gt=0, description="without a still start: accel averaged for roll/pitch, seconds"
+    )
+    min_displacement: float = Field(
+        1.0, gt=0, description="UWB-track displacement needed before heading is solved, m"
+    )
+    max_yaw_sigma: float = Field(
+        0.05, gt=0, description="largest accepted std of the initial heading, rad"
+    )
+    max_window: float = Field(
+        12.0, gt=0, description="longest motion window used to solve the heading, seconds"
+    )
+    heading_timeout: float = Field(
+        3.0, gt=0,
+        description="UWB only: seconds of fixes after which a still tag starts, heading unknown",
+    )
 
 
 class GraphConfig(_Section):
@@ -169,6 +185,29 @@ class WlsConfig(_Section):
     nlos_std: float = Field(0.145, gt=0, description="NLOS range error std, metres")
     los_std: float = Field(0.026, gt=0, description="LOS range error std, metres")
     window: float = Field(0.2, gt=0, description="epoch length for grouping ranges, seconds")
+    nlos_prior: float = Field(
+        0.2, ge=0, lt=1, description="prior probability that a range is NLOS (0..1)"
+    )
+    anchor_nlos: dict[str, tuple[float, float, float, float]] = Field(
+        default_factory=dict,
+        description="per-anchor [los_std, nlos_mean, nlos_std, nlos_prior] (m, m, m, 0..1) "
+        "from calibrate-nlos; overrides the global values",
+    )
+    weighted: bool = Field(True, description="NLOS-probability weights (Qiu eq. 10-11)")
+    height_projection: Literal["auto", "on", "off"] = Field(
+        "auto",
+        description="2-D fix with anchor height projection: auto = on when the log has wheels",
+    )
+    tag_height: float | Literal["auto"] = Field(
+        "auto", description="tag antenna height in the map frame for 2-D fixes, m (auto = estimate)"
+    )
+    nearest_three: bool = Field(False, description="use only the three nearest anchors")
+    min_track: float = Field(
+        0.3, gt=0, description="track length over which the heading (motion direction) is taken, m"
+    )
+    lkf_accel_psd: float = Field(
+        0.5, gt=0, description="LKF white-acceleration spectral density, m^2/s^3"
+    )
 
 
 class OutputConfig(_Section):
