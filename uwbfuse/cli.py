@@ -23,6 +23,9 @@ EXAMPLES = """examples:
 """
 
 METHOD_HELP = "isam2 | isam2-smoothed | batch | ekf | ukf | wls | lkf | imu | odom"
+SCHEDULER_HELP = "Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)"
+WORKERS_HELP = "worker processes of the local cluster (default: one per core)"
+DASHBOARD_HELP = "serve and print the Dask dashboard address"
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -99,23 +102,60 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_montecarlo(args: argparse.Namespace) -> int:
-    from uwbfuse.montecarlo import montecarlo
+def _quiet_dask(args: argparse.Namespace) -> None:
+    """Dask logs its start-up at INFO (set when it is imported); keep that for -v only."""
+    if args.verbose:
+        return
+    try:
+        import distributed  # noqa: F401 (its import installs the logger levels we lower)
+    except ImportError:
+        return
+    logging.getLogger("distributed").setLevel(logging.ERROR)
 
-    montecarlo(
-        scenario=args.scenario, runs=args.runs, duration_s=args.duration,
-        methods=args.methods, out_dir=args.out, scheduler=args.scheduler,
-    )
+
+def _print_cluster(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+def _cmd_montecarlo(args: argparse.Namespace) -> int:
+    from uwbfuse.fleet import describe_cluster
+    from uwbfuse.montecarlo import montecarlo
+    from uwbfuse.progress import ProgressBar
+
+    _quiet_dask(args)
+    with ProgressBar("runs") as bar:
+        result = montecarlo(
+            scenario=args.scenario, runs=args.runs, duration_s=args.duration,
+            methods=args.methods, out_dir=args.out, scheduler=args.scheduler,
+            workers=args.workers, dashboard=args.dashboard, progress=bar,
+            on_start=lambda info: _print_cluster(describe_cluster(info, args.dashboard)),
+        )
+    print(result.table())
+    print(f"wrote {result.out_dir}/montecarlo.csv, montecarlo.md, runs.csv "
+          f"({result.wall_s:.1f} s)")
     return 0
 
 
 def _cmd_batch(args: argparse.Namespace) -> int:
-    from uwbfuse.fleet import batch_run
+    from uwbfuse.fleet import batch_run, describe_cluster
+    from uwbfuse.progress import ProgressBar
 
-    batch_run(
-        args.logs, method=args.method, config_path=args.config, out_dir=args.out_dir,
-        scheduler=args.scheduler,
-    )
+    _quiet_dask(args)
+    with ProgressBar("logs") as bar:
+        result = batch_run(
+            args.logs, method=args.method, config_path=args.config, out_dir=args.out_dir,
+            scheduler=args.scheduler, workers=args.workers, dashboard=args.dashboard,
+            progress=bar,
+            on_start=lambda info: _print_cluster(describe_cluster(info, args.dashboard)),
+        )
+    print(result.table(("log", "status", "duration_s", "poses", "ate_rmse_m", "wall_s",
+                        "realtime_factor", "skipped", "error")))
+    print(f"{result.n_ok} of {len(result.rows)} logs ok ({result.n_resumed} resumed) in "
+          f"{result.wall_s:.1f} s; summary: {result.summary_csv}, {result.summary_md}")
+    if result.n_failed:
+        print(f"uwbfuse batch: error: {result.n_failed} of {len(result.rows)} logs failed "
+              f"(see {result.summary_csv})", file=sys.stderr)
+        return 2
     return 0
 
 
@@ -166,7 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--duration", type=float, default=200.0)
     m.add_argument("--methods", default="isam2,ekf,imu")
     m.add_argument("--out", default="montecarlo_out", metavar="DIR")
-    m.add_argument("--scheduler", metavar="ADDRESS")
+    m.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
+    m.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
+    m.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     m.set_defaults(func=_cmd_montecarlo)
 
     b = sub.add_parser("batch", help="run one method over many logs")
@@ -174,7 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--method", required=True, help=METHOD_HELP)
     b.add_argument("--config", metavar="FILE")
     b.add_argument("--out-dir", default="batch_out", metavar="DIR")
-    b.add_argument("--scheduler", metavar="ADDRESS")
+    b.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
+    b.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
+    b.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     b.set_defaults(func=_cmd_batch)
 
     d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
