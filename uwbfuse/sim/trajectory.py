@@ -336,7 +336,7 @@ def route_polyline(
     prims: list[Primitive], start: tuple[float, float, float], step: float = 0.05
 ) -> F64:
     """Points (N,2) along one lap of the route, map frame, m (for plots and geometry tests)."""
-    mp = MotionParams(speed=1.0, accel=1.0, spin_rate=1.0)
+    mp = MotionParams(speed=0.1, accel=1.0, spin_rate=1.0)
     tl = build_timeline(prims, start, mp, duration_s=0.0, still_start_s=1e-3)
     lap_end = 1e-3 + sum(p[0] for p in _lap_phases(prims, mp))
     t = np.arange(0.0, lap_end, step)
