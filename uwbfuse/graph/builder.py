@@ -1,0 +1,369 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Incremental construction of the fusion graph, one keyframe at a time.
+
+Keyframes sit on a fixed grid (config.graph.keyframe_rate) starting at the initial state's
+time. Keyframe k holds X(k) (and V(k), B(k) when the log has an IMU). Building keyframe k
+adds: the IMU factor (CombinedImuFactor over [t_{k-1}, t_k]), the wheel factor (a
+BetweenFactorPose3 from the integrated twist), the soft planar prior, and every range with
+a stamp in [t_{k-1}, t_k), each attached to X(k-1) through the transform
+`delta(t_{k-1} -> t_range) * tag_in_base`, where delta is the motion of the base frame from
+the keyframe to the range's own time according to the wheel track (or the IMU prediction
+from the keyframe's current state estimate). So every range is used at its own time, with
+native factors only.
+
+The builder is shared by the online smoother (which feeds each keyframe to a fixed-lag
+iSAM2) and the batch solver (which also keeps every factor: `record=True`).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from uwbfuse.config import Config
+from uwbfuse.graph import imu as imu_mod
+from uwbfuse.graph.keys import B, D, L, V, X
+from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
+from uwbfuse.graph.uwb import MixtureParams, hmm_filter, range_factor
+from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
+from uwbfuse.streams import NS_PER_S, AnchorMap
+
+ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
+
+
+@dataclass
+class StartState:
+    """Initial state from the sensors (same fields as positioning's InitialState)."""
+
+    t_ns: int
+    position: np.ndarray
+    R_map_base: np.ndarray
+    velocity: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    position_sigma: float
+    yaw_sigma: float
+    still: bool
+
+
+@dataclass
+class Increment:
+    """New factors, new values and key timestamps (s since the first keyframe) of one step."""
+
+    graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    stamps: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass
+class RangeRecords:
+    """Every range put in the graph (for batch EM and the outlier report)."""
+
+    k: list[np.ndarray] = field(default_factory=list)
+    anchor: list[np.ndarray] = field(default_factory=list)
+    z: list[np.ndarray] = field(default_factory=list)
+    t_ns: list[np.ndarray] = field(default_factory=list)
+    tag_in_kf: list[np.ndarray] = field(default_factory=list)
+    g_online: list[np.ndarray] = field(default_factory=list)
+    w_online: list[np.ndarray] = field(default_factory=list)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        if not self.k:
+            return {"k": np.zeros(0, np.int64), "anchor": np.zeros(0, np.int64),
+                    "z": np.zeros(0), "t_ns": np.zeros(0, np.int64),
+                    "tag_in_kf": np.zeros((0, 3)), "g_online": np.zeros(0),
+                    "w_online": np.zeros(0)}
+        return {name: np.concatenate(getattr(self, name)) for name in
+                ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online")}
+
+
+class GraphBuilder:
+    """Turns buffered sensor data into keyframes and factors (see the module docstring)."""
+
+    def __init__(
+        self,
+        config: Config,
+        anchors: AnchorMap,
+        streams: frozenset[str],
+        start: Any,
+        imu: imu_mod.ImuBuffer,
+        wheel: WheelTrack,
+        record: bool,
+    ) -> None:
+        self.cfg = config
+        self.g = config.graph
+        self.anchors = anchors
+        self.has_imu = "imu" in streams
+        self.has_wheel = "wheel" in streams
+        self.planar = self.g.planar == "on" or (self.g.planar == "auto" and self.has_wheel)
+        self.period_ns = round(NS_PER_S / self.g.keyframe_rate)
+        self.t0 = int(start.t_ns)
+        self.k = -1
+        self.start = start
+        self.imu = imu
+        self.wheel = wheel
+        self.tag = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        self.with_bias = self.g.estimate_range_bias
+        self.nlos = self.g.nlos
+        self.mixture = MixtureParams.from_config(config.uwb, self.g)
+        self.mixture_prior = copy.copy(self.mixture)
+        if not self.nlos:
+            self.mixture.p_nlos = 1e-6
+        m = len(anchors)
+        self.anchor_p = np.full(m, self.mixture.p_nlos)
+        self.range_bias = np.zeros(m)
+        self.z0 = float(start.position[2])
+        self.pim_params = (
+            imu_mod.preintegration_params(config.imu, config.extrinsics) if self.has_imu else None
+        )
+        # current estimate of the newest keyframe (updated by the smoother)
+        self.pose = gtsam.Pose3(gtsam.Rot3(np.asarray(start.R_map_base, dtype=np.float64)),
+                                np.asarray(start.position, dtype=np.float64))
+        self.vel = np.asarray(start.velocity, dtype=np.float64).copy()
+        self.bias = gtsam.imuBias.ConstantBias(np.asarray(start.accel_bias, dtype=np.float64),
+                                               np.asarray(start.gyro_bias, dtype=np.float64))
+        self._rt: list[np.ndarray] = []  # pending ranges: (t, anchor, z) chunks
+        self._ra: list[np.ndarray] = []
+        self._rz: list[np.ndarray] = []
+        self.record = record
+        self.records = RangeRecords()
+        self.full_graph = gtsam.NonlinearFactorGraph() if record else None
+        self.full_values = gtsam.Values() if record else None
+        self.dropped_ranges = 0
+        self._resid: list[np.ndarray] = []
+        self._resp: list[np.ndarray] = []
+        self._since_mstep = 0
+
+    # ---------------------------------------------------------------- data
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        """Queue ranges (stamps ns, anchor index, metres) for the keyframes to come."""
+        keep = np.asarray(t_ns) >= self.t0
+        self.dropped_ranges += int(np.count_nonzero(~keep))
+        if np.any(keep):
+            self._rt.append(np.asarray(t_ns, np.int64)[keep])
+            self._ra.append(np.asarray(anchor, np.int64)[keep])
+            self._rz.append(np.asarray(rng, np.float64)[keep])
+
+    def _take_ranges(self, t_end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if not self._rt:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        t = np.concatenate(self._rt)
+        a = np.concatenate(self._ra)
+        z = np.concatenate(self._rz)
+        order = np.argsort(t, kind="stable")
+        t, a, z = t[order], a[order], z[order]
+        n = int(np.searchsorted(t, t_end, side="left"))
+        self._rt, self._ra, self._rz = ([t[n:]], [a[n:]], [z[n:]]) if n < len(t) else ([], [], [])
+        return t[:n], a[:n], z[:n]
+
+    # ---------------------------------------------------------------- time
+    def time_of(self, k: int) -> int:
+        return self.t0 + k * self.period_ns
+
+    def next_time(self) -> int:
+        return self.time_of(self.k + 1)
+
+    def stamp(self, k: int) -> float:
+        return (self.time_of(k) - self.t0) / NS_PER_S
+
+    # ---------------------------------------------------------------- motion
+    def delta(
+        self, t_a: int, t_b: np.ndarray, pose_a: gtsam.Pose3, vel_a: np.ndarray
+    ) -> list[gtsam.Pose3]:
+        """Base-frame motion from t_a to each t_b (>= t_a), from wheels, else IMU, else none.
+
+        The IMU prediction starts from the state (pose_a, vel_a) at t_a and the current bias.
+        """
+        if self.has_wheel and len(self.wheel):
+            dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
+            rel = se2_between(dd[0][None, :], dd[1:])
+            return [se2_to_pose3(r) for r in rel]
+        if self.has_imu and self.pim_params is not None and len(self.imu):
+            out = []
+            nav = gtsam.NavState(pose_a, vel_a)
+            pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, self.bias)
+            t_cur = t_a
+            inv = pose_a.inverse()
+            for tb in t_b.tolist():
+                gy, ac, dt = self.imu.pieces(t_cur, tb)
+                imu_mod.integrate(pim, gy, ac, dt)
+                t_cur = max(t_cur, tb)
+                out.append(inv.compose(pim.predict(nav, self.bias).pose()))
+            return out
+        return [gtsam.Pose3() for _ in range(len(t_b))]
+
+    def predict(self, t: int) -> gtsam.Pose3:
+        """Causal pose at t from the newest keyframe estimate plus odometry/IMU motion."""
+        if self.k < 0:
+            return self.pose
+        tk = self.time_of(self.k)
+        if t <= tk:
+            return self.pose
+        return self.pose.compose(self.delta(tk, np.array([t], np.int64), self.pose, self.vel)[0])
+
+    # ---------------------------------------------------------------- factors
+    def _planar_prior(self, k: int, pose: gtsam.Pose3) -> gtsam.NonlinearFactor:
+        ypr = pose.rotation().ypr()
+        mean = gtsam.Pose3(gtsam.Rot3.Ypr(float(ypr[0]), 0.0, 0.0),
+                           np.array([pose.x(), pose.y(), self.z0]))
+        big = 1e3
+        s = pose_sigmas((self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big),
+                        (big, big, self.g.planar_sigma_z))
+        return gtsam.PriorFactorPose3(X(k), mean, diagonal(s))
+
+    def first(self) -> Increment:
+        """Keyframe 0: priors from the initial state, anchors and range biases."""
+        inc = Increment()
+        self.k = 0
+        st = self.start
+        tilt = 0.05 if self.has_imu else 0.02
+        pos_s = max(float(st.position_sigma), 0.05)
+        yaw_s = max(float(st.yaw_sigma), 0.02)
+        z_s = self.g.planar_sigma_z if self.planar else max(pos_s, 0.3)
+        inc.graph.add(gtsam.PriorFactorPose3(
+            X(0), self.pose, diagonal(pose_sigmas((tilt, tilt, yaw_s), (pos_s, pos_s, z_s)))))
+        inc.values.insert(X(0), self.pose)
+        keys = [X(0)]
+        if self.planar:
+            inc.graph.add(self._planar_prior(0, self.pose))
+        if self.has_imu:
+            v_s = 0.05 if st.still else 0.5
+            inc.graph.add(gtsam.PriorFactorVector(V(0), self.vel, diagonal([v_s] * 3)))
+            inc.graph.add(gtsam.PriorFactorConstantBias(
+                B(0), self.bias, diagonal(imu_mod.bias_prior_sigmas(self.cfg.imu))))
+            inc.values.insert(V(0), self.vel)
+            inc.values.insert(B(0), self.bias)
+            keys += [V(0), B(0)]
+        for a in range(len(self.anchors)):
+            p = self.anchors.positions[a]
+            inc.graph.add(gtsam.PriorFactorPoint3(L(a), p, diagonal([ANCHOR_SIGMA] * 3)))
+            inc.values.insert(L(a), p)
+            if self.with_bias:
+                inc.graph.add(gtsam.PriorFactorDouble(
+                    D(a), 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
+                inc.values.insert(D(a), 0.0)
+        for key in keys:
+            inc.stamps[key] = 0.0
+        self._stamp_globals(inc, 0.0)
+        self._record(inc)
+        return inc
+
+    def _stamp_globals(self, inc: Increment, s: float) -> None:
+        """Anchors and range biases never leave the smoother's window."""
+        for a in range(len(self.anchors)):
+            inc.stamps[L(a)] = s
+            if self.with_bias:
+                inc.stamps[D(a)] = s
+
+    def next(self) -> Increment:
+        """Build keyframe k+1 (the data up to its time must have been added)."""
+        inc = Increment()
+        k = self.k + 1
+        ka = k - 1
+        t_a, t_b = self.time_of(ka), self.time_of(k)
+        dt = (t_b - t_a) / NS_PER_S
+        pose_a, vel_a, bias_a = self.pose, self.vel, self.bias
+        new_pose = pose_a
+        new_vel = vel_a
+        if self.has_imu:
+            pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias_a)
+            gy, ac, dts = self.imu.pieces(t_a, t_b)
+            if len(dts) == 0:
+                gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
+                dts = np.asarray(dts, dtype=np.float64)
+            imu_mod.integrate(pim, gy, ac, dts)
+            inc.graph.add(gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim))
+            pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
+            new_pose, new_vel = pred.pose(), pred.velocity()
+            inc.values.insert(V(k), new_vel)
+            inc.values.insert(B(k), bias_a)
+            inc.stamps[V(k)] = self.stamp(k)
+            inc.stamps[B(k)] = self.stamp(k)
+        if self.has_wheel:
+            d = self.wheel.between(t_a, t_b)
+            cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
+            oop = (0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2)
+            inc.graph.add(between_factor(X(ka), X(k), d, cov, oop))
+            wp = pose_a.compose(se2_to_pose3(d))
+            if self.has_imu:
+                xyz = np.array([wp.x(), wp.y(), new_pose.z()])
+                new_pose = gtsam.Pose3(new_pose.rotation(), xyz)
+            else:
+                new_pose = wp
+        if not self.has_imu and not self.has_wheel:
+            s = pose_sigmas((1.0 * dt,) * 3, (2.0 * dt,) * 3)
+            inc.graph.add(gtsam.BetweenFactorPose3(X(ka), X(k), gtsam.Pose3(), diagonal(s)))
+        if self.planar:
+            inc.graph.add(self._planar_prior(k, new_pose))
+        inc.values.insert(X(k), new_pose)
+        inc.stamps[X(k)] = self.stamp(k)
+        self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
+        self._add_ranges(inc, ka, t_a, t_b, pose_a, vel_a)
+        self._stamp_globals(inc, self.stamp(k))
+        self.k = k
+        self.pose, self.vel = new_pose, new_vel
+        if self.imu is not None:
+            self.imu.drop_before(t_a)
+        return inc
+
+    def _add_ranges(
+        self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
+    ) -> None:
+        t, a, z = self._take_ranges(t_b)
+        if len(t) == 0:
+            return
+        deltas = self.delta(t_a, t, pose_a, vel_a)
+        tag_kf = np.array([d.transformFrom(self.tag) for d in deltas])
+        p_world = np.array([pose_a.transformFrom(p) for p in tag_kf])
+        pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
+        r = z - pred - (self.range_bias[a] if self.with_bias else 0.0)
+        mix = self.mixture
+        if self.nlos:
+            ll_l, ll_n = mix.log_likelihoods(r)
+            g = np.empty(len(r))
+            for anc in np.unique(a):
+                sel = np.flatnonzero(a == anc)
+                g[sel], self.anchor_p[anc] = hmm_filter(
+                    ll_l[sel], ll_n[sel], self.g.nlos_switch, mix.p_nlos, self.anchor_p[anc])
+            shift, sig = mix.effective(g)
+        else:
+            g = np.zeros(len(r))
+            shift, sig = np.zeros(len(r)), np.full(len(r), self.cfg.uwb.sigma)
+        for j in range(len(t)):
+            inc.graph.add(range_factor(ka, int(a[j]), float(z[j] - shift[j]), float(sig[j]),
+                                       gtsam.Pose3(gtsam.Rot3(), tag_kf[j]), self.cfg.uwb,
+                                       self.with_bias))
+        w = robust_weight(self.cfg.uwb.robust_kernel, self.cfg.uwb.kernel_threshold,
+                          (r - shift) / sig)
+        rec = self.records
+        rec.k.append(np.full(len(t), ka, np.int64))
+        rec.anchor.append(a)
+        rec.z.append(z)
+        rec.t_ns.append(t)
+        rec.tag_in_kf.append(tag_kf)
+        rec.g_online.append(g)
+        rec.w_online.append(w)
+        if self.nlos:
+            self._online_m_step(r, g)
+
+    def _online_m_step(self, r: np.ndarray, g: np.ndarray) -> None:
+        """Adapt the mixture to the last few thousand residuals (prior: the config)."""
+        self._resid.append(r)
+        self._resp.append(g)
+        self._since_mstep += len(r)
+        if self._since_mstep < 200:
+            return
+        rr = np.concatenate(self._resid)[-3000:]
+        gg = np.concatenate(self._resp)[-3000:]
+        self._resid, self._resp = [rr], [gg]
+        self._since_mstep = 0
+        self.mixture.m_step(rr, gg, self.mixture_prior, n0=100.0)
+
+    def _record(self, inc: Increment) -> None:
+        if self.record and self.full_graph is not None and self.full_values is not None:
+            self.full_graph.push_back(inc.graph)
+            self.full_values.insert(inc.values)

@@ -1,0 +1,385 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The streaming graph estimator behind `isam2`, `isam2-smoothed` and `batch`.
+
+Data arrive in time-sorted batches (`add_imu`, `add_wheel`, `add_ranges`). Until the
+sensors determine a start (`positioning.initialisation.Initialiser`), `estimate()` is None.
+From then on each `step(t)` builds every keyframe with time <= t (`GraphBuilder`) and feeds
+it to a fixed-lag iSAM2 (`OnlineSmoother`); `estimate()` is the newest keyframe composed
+with the odometry/IMU motion up to t: causal.
+
+`finish()`:
+- isam2: None (the causal estimates are the output).
+- isam2-smoothed: every keyframe's estimate as it stood when it left the fixed-lag window
+  (the final iSAM2 estimate of that keyframe; keyframes still in the window at the end
+  take the final window estimate), interpolated to the step epochs.
+- batch: the whole log as one graph (every factor recorded while streaming), solved by
+  Levenberg-Marquardt with NLOS EM from the isam2-smoothed keyframe estimates. The online
+  pass of `batch` updates iSAM2 once per `BATCH_CHUNK` keyframes (it only seeds LM).
+
+A GTSAM failure in an update (indeterminant system after an outage, say) re-anchors: a
+fresh smoother starts from the newest keyframe's prediction with loose priors, a warning
+is logged and counted in `report()`; it never raises.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import gtsam
+import numpy as np
+
+from uwbfuse.config import Config
+from uwbfuse.errors import EstimatorError
+from uwbfuse.estimator import Estimator, Method, PoseEstimate
+from uwbfuse.graph import offline
+from uwbfuse.graph.builder import GraphBuilder, Increment
+from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
+from uwbfuse.graph.keys import B, D, L, V, X
+from uwbfuse.graph.noise import diagonal, pose_sigmas
+from uwbfuse.graph.online import OnlineSmoother
+from uwbfuse.graph.wheel import WheelTrack
+from uwbfuse.streams import AnchorMap, PoseStream
+
+log = logging.getLogger(__name__)
+
+BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
+
+
+def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
+    q = pose.rotation().toQuaternion()
+    return np.array([q.x(), q.y(), q.z(), q.w()])
+
+
+class GraphEstimator:
+    """Factor-graph estimator (see the module docstring). Implements `Estimator`."""
+
+    def __init__(
+        self,
+        method: Method,
+        config: Config,
+        anchors: AnchorMap,
+        streams: frozenset[str],
+        initialiser: Any,
+    ) -> None:
+        self.method = method
+        self.cfg = config
+        self.anchors = anchors
+        self.streams = streams
+        self.init = initialiser
+        self.imu = ImuBuffer()
+        self.wheel = WheelTrack()
+        self.builder: GraphBuilder | None = None
+        self.smoother: OnlineSmoother | None = None
+        self._pre_ranges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._chunk = BATCH_CHUNK if method is Method.BATCH else 1
+        self._pending: list[Increment] = []
+        self._last_t: int | None = None
+        self._steps: list[int] = []
+        # per keyframe: smoothed (as it left the window) pose/velocity/bias
+        self._kf_pose: dict[int, gtsam.Pose3] = {}
+        self._kf_vel: dict[int, np.ndarray] = {}
+        self._kf_bias: dict[int, gtsam.imuBias.ConstantBias] = {}
+        self._saved_upto = 0
+        self._reanchors: list[dict[str, Any]] = []
+        self._update_latency: list[float] = []
+        self._init_t: int | None = None
+        self._batch: offline.BatchResult | None = None
+        self._batch_wall = 0.0
+
+    # ------------------------------------------------------------------ input
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """IMU batch: stamps (N,) ns, gyro (N,3) rad/s, specific force (N,3) m/s^2."""
+        self.imu.add(t_ns, gyro, accel)
+        if self.builder is None:
+            self.init.add_imu(t_ns, gyro, accel)
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        """Wheel batch: stamps (N,) ns, forward speed (N,) m/s, yaw rate (N,) rad/s."""
+        self.wheel.add(t_ns, v, omega)
+        if self.builder is None:
+            self.init.add_wheel(t_ns, v, omega)
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
+        if self.builder is None:
+            self.init.add_ranges(t_ns, anchor, rng)
+            self._pre_ranges.append((np.asarray(t_ns), np.asarray(anchor), np.asarray(rng)))
+        else:
+            self.builder.add_ranges(t_ns, anchor, rng)
+
+    # ------------------------------------------------------------------ processing
+    def step(self, t_ns: int) -> None:
+        """Process all data with stamps <= t_ns (see the module docstring)."""
+        self._last_t = int(t_ns)
+        if self.builder is None:
+            state = self.init.try_initialise(int(t_ns))
+            if state is None:
+                return
+            self._start(state)
+        self._steps.append(int(t_ns))
+        b = self.builder
+        assert b is not None
+        while b.next_time() <= t_ns:
+            self._pending.append(b.next())
+            if len(self._pending) >= self._chunk:
+                self._flush()
+        if self._chunk == 1:
+            self._flush()
+
+    def _start(self, state: Any) -> None:
+        self.builder = GraphBuilder(
+            self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
+            record=self.method is Method.BATCH,
+        )
+        self._init_t = int(state.t_ns)
+        for t, a, r in self._pre_ranges:
+            self.builder.add_ranges(t, a, r)
+        self._pre_ranges.clear()
+        self.smoother = OnlineSmoother(self.cfg.graph.lag)
+        self._pending.append(self.builder.first())
+        self._flush()
+        log.info("graph initialised at t=%.3f s (position sigma %.2f m, yaw sigma %.2f rad)",
+                 state.t_ns * 1e-9, state.position_sigma, state.yaw_sigma)
+
+    def _merge_pending(self) -> Increment:
+        if len(self._pending) == 1:
+            return self._pending.pop()
+        inc = Increment()
+        for p in self._pending:
+            inc.graph.push_back(p.graph)
+            inc.values.insert(p.values)
+            inc.stamps.update(p.stamps)
+        self._pending.clear()
+        return inc
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        b, sm = self.builder, self.smoother
+        assert b is not None and sm is not None
+        inc = self._merge_pending()
+        tic = time.perf_counter()
+        try:
+            sm.update(inc)
+            k = b.k
+            b.pose = sm.pose(k)
+            if b.has_imu:
+                b.vel = sm.velocity(k)
+                b.bias = sm.bias(k)
+            if b.with_bias:
+                b.range_bias = np.array([sm.range_bias(a) for a in range(len(self.anchors))])
+            self._save_leaving(sm, b)
+        except RuntimeError as exc:
+            self._reanchor(str(exc))
+        self._update_latency.append(time.perf_counter() - tic)
+
+    def _save_leaving(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """Store the estimates of keyframes about to be marginalised."""
+        keep = int(self.cfg.graph.lag * self.cfg.graph.keyframe_rate) - self._chunk - 1
+        upto = b.k - max(keep, 0)
+        for k in range(self._saved_upto, upto + 1):
+            self._save_kf(sm, b, k)
+        self._saved_upto = max(self._saved_upto, upto + 1)
+
+    def _save_kf(self, sm: OnlineSmoother, b: GraphBuilder, k: int) -> None:
+        try:
+            self._kf_pose[k] = sm.pose(k)
+            if b.has_imu:
+                self._kf_vel[k] = sm.velocity(k)
+                self._kf_bias[k] = sm.bias(k)
+        except RuntimeError:
+            pass  # not in this smoother (re-anchored): keep the earlier estimate if any
+
+    def _reanchor(self, reason: str) -> None:
+        """Restart the smoother at the newest keyframe with loose priors (never raises)."""
+        b = self.builder
+        assert b is not None
+        k = b.k
+        log.warning("iSAM2 update failed at keyframe %d (%s): re-anchoring the graph",
+                    k, reason.splitlines()[0] if reason else "error")
+        self._reanchors.append({"keyframe": k, "t_ns": b.time_of(k), "reason": reason[:200]})
+        for kk in range(self._saved_upto, k + 1):
+            self._kf_pose.setdefault(kk, b.pose if kk == k else self._kf_pose.get(kk, b.pose))
+        self._saved_upto = k + 1
+        self.smoother = OnlineSmoother(self.cfg.graph.lag)
+        inc = Increment()
+        s = b.stamp(k)
+        inc.graph.add(gtsam.PriorFactorPose3(
+            X(k), b.pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (0.5, 0.5, 0.5)))))
+        inc.values.insert(X(k), b.pose)
+        inc.stamps[X(k)] = s
+        if b.has_imu:
+            inc.graph.add(gtsam.PriorFactorVector(V(k), b.vel, diagonal([0.5] * 3)))
+            inc.graph.add(gtsam.PriorFactorConstantBias(
+                B(k), b.bias, diagonal(bias_prior_sigmas(self.cfg.imu))))
+            inc.values.insert(V(k), b.vel)
+            inc.values.insert(B(k), b.bias)
+            inc.stamps[V(k)] = s
+            inc.stamps[B(k)] = s
+        for a in range(len(self.anchors)):
+            p = self.anchors.positions[a]
+            inc.graph.add(gtsam.PriorFactorPoint3(L(a), p, diagonal([1e-3] * 3)))
+            inc.values.insert(L(a), p)
+            inc.stamps[L(a)] = s
+            if b.with_bias:
+                inc.graph.add(gtsam.PriorFactorDouble(
+                    D(a), float(b.range_bias[a]), gtsam.noiseModel.Isotropic.Sigma(1, 0.05)))
+                inc.values.insert(D(a), float(b.range_bias[a]))
+                inc.stamps[D(a)] = s
+        try:
+            self.smoother.update(inc)
+        except RuntimeError as exc:  # pragma: no cover - priors on every key: cannot fail
+            raise EstimatorError(f"graph re-anchoring failed: {exc}") from None
+
+    # ------------------------------------------------------------------ output
+    def estimate(self) -> PoseEstimate | None:
+        """Causal pose at the last step time, or None before initialisation."""
+        if self.builder is None or self._last_t is None:
+            return None
+        p = self.builder.predict(self._last_t)
+        return PoseEstimate(self._last_t, np.asarray(p.translation()), _quat_xyzw(p))
+
+    def _finalise_online(self) -> None:
+        b, sm = self.builder, self.smoother
+        assert b is not None and sm is not None
+        self._flush()
+        for k in range(self._saved_upto, b.k + 1):
+            self._save_kf(sm, b, k)
+        self._saved_upto = b.k + 1
+
+    def finish(self) -> PoseStream | None:
+        """Final trajectory (isam2-smoothed, batch) at the step epochs, or None (isam2)."""
+        if self.method is Method.ISAM2 or self.builder is None:
+            return None
+        self._finalise_online()
+        b = self.builder
+        n = b.k + 1
+        if self.method is Method.BATCH:
+            tic = time.perf_counter()
+            self._run_batch()
+            self._batch_wall = time.perf_counter() - tic
+            assert self._batch is not None
+            vals = self._batch.values
+            poses = [vals.atPose3(X(k)) for k in range(n)]
+        else:
+            poses = [self._kf_pose.get(k) for k in range(n)]
+            last = None
+            for k in range(n):  # keyframes lost to a re-anchor keep their neighbour's pose
+                if poses[k] is None:
+                    poses[k] = last if last is not None else b.pose
+                last = poses[k]
+        return self._interpolate(poses)
+
+    def _run_batch(self) -> None:
+        b = self.builder
+        assert b is not None and b.full_graph is not None and b.full_values is not None
+        n = b.k + 1
+        initial = gtsam.Values()
+        for k in range(n):
+            initial.insert(X(k), self._kf_pose.get(k, b.full_values.atPose3(X(k))))
+            if b.has_imu:
+                initial.insert(V(k), self._kf_vel.get(k, b.full_values.atVector(V(k))))
+                initial.insert(B(k), self._kf_bias.get(
+                    k, b.full_values.atConstantBias(B(k))))
+        for a in range(len(self.anchors)):
+            initial.insert(L(a), self.anchors.positions[a])
+            if b.with_bias:
+                initial.insert(D(a), float(b.range_bias[a]))
+        rec = b.records.arrays()
+        self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
+                                    self.anchors.positions, n, b.mixture)
+
+    def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
+        """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""
+        b = self.builder
+        assert b is not None
+        n = len(poses)
+        pos = np.array([p.translation() for p in poses])
+        quat = np.array([_quat_xyzw(p) for p in poses])
+        for i in range(1, n):  # consistent quaternion hemisphere
+            if np.dot(quat[i], quat[i - 1]) < 0:
+                quat[i] = -quat[i]
+        t = np.array([s for s in self._steps if self._init_t is None or s >= self._init_t],
+                     dtype=np.int64)
+        u = (t - b.t0) / b.period_ns
+        k0 = np.clip(np.floor(u).astype(np.int64), 0, n - 1)
+        k1 = np.clip(k0 + 1, 0, n - 1)
+        f = np.clip(u - k0, 0.0, 1.0)[:, None]
+        f = np.where((k1 == k0)[:, None], 0.0, f)
+        p = (1 - f) * pos[k0] + f * pos[k1]
+        q = (1 - f) * quat[k0] + f * quat[k1]
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
+        # epochs after the last keyframe: odometry from the last keyframe
+        late = np.flatnonzero(t > b.time_of(n - 1))
+        if len(late):
+            b.pose = poses[-1]
+            for i in late:
+                pp = b.predict(int(t[i]))
+                p[i] = pp.translation()
+                q[i] = _quat_xyzw(pp)
+        return PoseStream(t, p, q, True)
+
+    # ------------------------------------------------------------------ report
+    def report(self) -> dict[str, Any]:
+        """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
+        out: dict[str, Any] = {"method": self.method.value}
+        b = self.builder
+        if b is None:
+            out["initialised"] = False
+            return out
+        out["initialised"] = True
+        out["init_t_ns"] = self._init_t
+        out["keyframes"] = b.k + 1
+        lat = np.asarray(self._update_latency)
+        if len(lat):
+            out["update_latency_ms"] = {
+                "p50": float(np.percentile(lat, 50) * 1e3),
+                "p95": float(np.percentile(lat, 95) * 1e3),
+                "p99": float(np.percentile(lat, 99) * 1e3),
+                "max": float(lat.max() * 1e3),
+                "n": len(lat),
+            }
+        out["reanchor_events"] = list(self._reanchors)
+        rec = b.records.arrays()
+        if self._batch is not None:
+            g, w = self._batch.nlos_prob, self._batch.weight
+            mix = self._batch.mixture
+            bias = np.array([self._batch.values.atDouble(D(a)) for a in range(len(self.anchors))]
+                            ) if b.with_bias else np.zeros(len(self.anchors))
+            out["batch"] = {"em_rounds": self._batch.rounds,
+                            "lm_iterations": self._batch.lm_iterations,
+                            "wall_s": self._batch_wall}
+        else:
+            g, w = rec["g_online"], rec["w_online"]
+            mix = b.mixture
+            bias = b.range_bias
+        anchors: dict[str, Any] = {}
+        for a, aid in enumerate(self.anchors.ids):
+            sel = rec["anchor"] == a
+            anchors[aid] = {
+                "ranges": int(np.count_nonzero(sel)),
+                "nlos": int(np.count_nonzero(g[sel] > 0.5)),
+                "downweighted": int(np.count_nonzero(w[sel] < 0.999)),
+                "bias_m": float(bias[a]) if b.with_bias else None,
+            }
+        out["anchors"] = anchors
+        out["nlos_mixture"] = {"sigma_los": mix.sigma_los, "mu_nlos": mix.mu_nlos,
+                               "sigma_nlos": mix.sigma_nlos, "p_nlos": mix.p_nlos}
+        out["dropped_ranges_before_init"] = b.dropped_ranges
+        return out
+
+
+def make(
+    method: Method, config: Config, anchors: AnchorMap | None, streams: frozenset[str]
+) -> Estimator:
+    """The graph estimator for `method` (isam2, isam2-smoothed or batch)."""
+    if method not in (Method.ISAM2, Method.ISAM2_SMOOTHED, Method.BATCH):
+        raise EstimatorError(f"uwbfuse.graph does not implement method {method.value}")
+    if anchors is None or len(anchors) == 0 or "uwb" not in streams:
+        raise EstimatorError(f"method {method.value} needs UWB ranges and an anchor map")
+    from uwbfuse.positioning.initialisation import Initialiser
+
+    init = Initialiser(config, anchors, streams)
+    return GraphEstimator(method, config, anchors, streams, init)

@@ -1,0 +1,124 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""IMU preintegration: the parameter factory and block integration between keyframes.
+
+Units from `ImuConfig`: noise densities are continuous-time (accelerometer m/s^2/sqrt(Hz),
+gyroscope rad/s/sqrt(Hz)); GTSAM takes their squares as covariances and discretises with
+each sample's dt. Bias random walks likewise (m/s^3/sqrt(Hz), rad/s^2/sqrt(Hz)).
+The body frame of the factors is the base frame; `imu_in_base` is GTSAM's body_P_sensor.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from uwbfuse.config import Extrinsics, ImuConfig
+from uwbfuse.streams import NS_PER_S
+
+
+def pose_from_xyzq(xyzq: tuple[float, ...] | np.ndarray) -> gtsam.Pose3:
+    """Pose3 from x y z (m) qx qy qz qw."""
+    x, y, z, qx, qy, qz, qw = (float(c) for c in xyzq)
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), np.array([x, y, z]))
+
+
+def preintegration_params(cfg: ImuConfig, ext: Extrinsics) -> gtsam.PreintegrationCombinedParams:
+    """PreintegrationCombinedParams from config (gravity along -z of the map frame)."""
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(cfg.gravity)
+    i3 = np.eye(3)
+    p.setAccelerometerCovariance(i3 * cfg.accel_noise_density**2)
+    p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2)
+    p.setIntegrationCovariance(i3 * 1e-8)
+    p.setBiasAccCovariance(i3 * cfg.accel_bias_random_walk**2)
+    p.setBiasOmegaCovariance(i3 * cfg.gyro_bias_random_walk**2)
+    body_p_imu = pose_from_xyzq(ext.imu_in_base)
+    if not body_p_imu.equals(gtsam.Pose3(), 1e-12):
+        p.setBodyPSensor(body_p_imu)
+    return p
+
+
+def bias_prior_sigmas(cfg: ImuConfig) -> np.ndarray:
+    """Sigmas of an IMU-bias prior: accelerometer (m/s^2) then gyroscope (rad/s)."""
+    return np.array([cfg.accel_bias_sigma] * 3 + [cfg.gyro_bias_sigma] * 3)
+
+
+class ImuBuffer:
+    """IMU samples kept as growing numpy arrays; integrates time blocks into a PIM.
+
+    Each sample is held constant from its stamp to the next one (zero-order hold); a
+    block [t0, t1] integrates the pieces of the samples that cover it.
+    """
+
+    def __init__(self) -> None:
+        self._t = np.zeros(0, dtype=np.int64)
+        self._gyro = np.zeros((0, 3))
+        self._acc = np.zeros((0, 3))
+        self._chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def add(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Append a time-sorted batch: stamps ns, gyro rad/s, specific force m/s^2."""
+        self._chunks.append((np.asarray(t_ns, np.int64), np.asarray(gyro, float),
+                             np.asarray(accel, float)))
+
+    def _flush(self) -> None:
+        if self._chunks:
+            ts, gs, accs = zip(*self._chunks, strict=True)
+            self._t = np.concatenate([self._t, *ts])
+            self._gyro = np.concatenate([self._gyro, *gs])
+            self._acc = np.concatenate([self._acc, *accs])
+            self._chunks.clear()
+
+    def __len__(self) -> int:
+        self._flush()
+        return len(self._t)
+
+    @property
+    def last_t(self) -> int | None:
+        self._flush()
+        return int(self._t[-1]) if len(self._t) else None
+
+    def drop_before(self, t_ns: int) -> None:
+        """Forget samples no longer needed for blocks starting at or after `t_ns`."""
+        self._flush()
+        i = int(np.searchsorted(self._t, t_ns, side="right")) - 1
+        if i > 1000:
+            self._t, self._gyro, self._acc = self._t[i:], self._gyro[i:], self._acc[i:]
+
+    def pieces(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Zero-order-hold pieces covering [t0, t1]: gyro (n,3), accel (n,3), dt (n,) s."""
+        self._flush()
+        t = self._t
+        if len(t) == 0 or t1 <= t0:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(t, t1, side="left"))
+        idx = np.arange(i0, max(i1, i0 + 1))
+        starts = np.maximum(t[idx], t0)
+        ends = np.empty_like(starts)
+        ends[:-1] = t[idx[1:]]
+        ends[-1] = t1
+        ends = np.minimum(ends, t1)
+        dt = (ends - starts).astype(np.float64) / NS_PER_S
+        keep = dt > 0
+        return self._gyro[idx][keep], self._acc[idx][keep], dt[keep]
+
+    def mean_between(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """Mean gyro (rad/s), mean accel (m/s^2) and sample count over [t0, t1]."""
+        self._flush()
+        i0 = int(np.searchsorted(self._t, t0, side="left"))
+        i1 = int(np.searchsorted(self._t, t1, side="right"))
+        if i1 <= i0:
+            return np.zeros(3), np.zeros(3), 0
+        return self._gyro[i0:i1].mean(0), self._acc[i0:i1].mean(0), i1 - i0
+
+
+def integrate(
+    pim: gtsam.PreintegratedCombinedMeasurements | gtsam.PreintegratedImuMeasurements,
+    gyro: np.ndarray,
+    accel: np.ndarray,
+    dt: np.ndarray,
+) -> None:
+    """Integrate zero-order-hold pieces into `pim` (one native call per piece)."""
+    f = pim.integrateMeasurement
+    for a, w, d in zip(accel, gyro, dt.tolist(), strict=True):
+        f(a, w, d)

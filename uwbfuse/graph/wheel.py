@@ -1,0 +1,175 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Wheel odometry: a planar dead-reckoning track and the between-keyframe factor.
+
+Each wheel sample (v m/s, omega rad/s, base frame) is the mean velocity over the interval
+that ends at its stamp; the track integrates those exactly as constant-velocity arcs, so
+the relative motion between any two times (keyframes, range stamps) is one SE(2) composition.
+The factor between two keyframes is a native `BetweenFactorPose3` whose 6x6 covariance is
+propagated from the per-sample noise (sigma_v, sigma_omega, sigma_lateral times each piece's
+duration) through the arc composition; z, roll and pitch get `planar` sigmas.
+The wheel twist is already in the base frame, so the base extrinsics are the identity.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from uwbfuse.config import WheelConfig
+from uwbfuse.graph.noise import gaussian_covariance
+from uwbfuse.streams import NS_PER_S
+
+
+def _arcs(v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Local (dx, dy, dtheta) of constant-velocity arcs (vectorised)."""
+    th = w * tau
+    s = v * tau
+    small = np.abs(th) < 1e-6
+    th_safe = np.where(small, 1.0, th)
+    dx = np.where(small, s * (1.0 - th * th / 6.0), s * np.sin(th_safe) / th_safe)
+    dy = np.where(small, s * th / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
+    return dx, dy, th
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a (+) b for SE(2) poses (x, y, theta), broadcasting over leading axes."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    return np.stack(
+        [a[..., 0] + c * b[..., 0] - s * b[..., 1],
+         a[..., 1] + s * b[..., 0] + c * b[..., 1],
+         a[..., 2] + b[..., 2]], axis=-1)
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a^-1 (+) b for SE(2) poses (x, y, theta)."""
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    dth = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
+
+
+def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
+    """Planar (x, y, theta) as a Pose3 (z = 0, roll = pitch = 0)."""
+    return gtsam.Pose3(gtsam.Rot3.Yaw(float(d[2])), np.array([d[0], d[1], 0.0]))
+
+
+class WheelTrack:
+    """Cumulative planar dead reckoning from wheel samples, queryable at any time.
+
+    The track starts at (0, 0, 0) at the first sample's stamp; before it and after the
+    last sample it extrapolates with the first/last velocity.
+    """
+
+    def __init__(self) -> None:
+        self.t = np.zeros(0, dtype=np.int64)
+        self.v = np.zeros(0)
+        self.w = np.zeros(0)
+        self.pose = np.zeros((0, 3))  # track pose at each stamp
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def add(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        """Append a time-sorted batch of samples (stamps ns, v m/s, omega rad/s)."""
+        t_ns = np.asarray(t_ns, np.int64)
+        if len(t_ns) == 0:
+            return
+        if len(self.t):
+            keep = t_ns > self.t[-1]
+            t_ns, v, omega = t_ns[keep], np.asarray(v)[keep], np.asarray(omega)[keep]
+            if len(t_ns) == 0:
+                return
+            prev_t = np.concatenate([[self.t[-1]], t_ns[:-1]])
+            start = self.pose[-1]
+        else:
+            prev_t = np.concatenate([[t_ns[0]], t_ns[:-1]])
+            start = np.zeros(3)
+        tau = (t_ns - prev_t).astype(np.float64) / NS_PER_S
+        dx, dy, dth = _arcs(np.asarray(v, float), np.asarray(omega, float), tau)
+        th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
+        c, s = np.cos(th_prev), np.sin(th_prev)
+        gx, gy = c * dx - s * dy, s * dx + c * dy
+        poses = np.stack([start[0] + np.cumsum(gx), start[1] + np.cumsum(gy),
+                          start[2] + np.cumsum(dth)], axis=-1)
+        self.t = np.concatenate([self.t, t_ns])
+        self.v = np.concatenate([self.v, np.asarray(v, float)])
+        self.w = np.concatenate([self.w, np.asarray(omega, float)])
+        self.pose = np.concatenate([self.pose, poses])
+
+    def at(self, t_ns: np.ndarray | int) -> np.ndarray:
+        """Track pose(s) (x, y, theta) at `t_ns` (scalar or array of ns)."""
+        tq = np.atleast_1d(np.asarray(t_ns, np.int64))
+        n = len(self.t)
+        if n == 0:
+            return np.zeros((len(tq), 3)) if np.ndim(t_ns) else np.zeros(3)
+        i = np.searchsorted(self.t, tq, side="left")  # t[i-1] < tq <= t[i]
+        i_c = np.clip(i, 0, n - 1)
+        base_i = np.clip(i - 1, 0, n - 1)
+        base = self.pose[base_i].copy()
+        # before the first stamp: go backwards from sample 0 with its velocity
+        before = i == 0
+        base[before] = self.pose[0]
+        t_base = self.t[base_i].copy()
+        t_base[before] = self.t[0]
+        after = i >= n
+        vel_i = np.where(after, n - 1, i_c)
+        tau = (tq - t_base).astype(np.float64) / NS_PER_S
+        dx, dy, dth = _arcs(self.v[vel_i], self.w[vel_i], tau)
+        out = se2_compose(base, np.stack([dx, dy, dth], axis=-1))
+        return out if np.ndim(t_ns) else out[0]
+
+    def between(self, t_a: int, t_b: int) -> np.ndarray:
+        """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a."""
+        p = self.at(np.array([t_a, t_b], dtype=np.int64))
+        return se2_between(p[0], p[1])
+
+    def covariance(self, t_a: int, t_b: int, cfg: WheelConfig) -> np.ndarray:
+        """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise."""
+        n = len(self.t)
+        cov = np.zeros((3, 3))
+        if n == 0 or t_b <= t_a:
+            return cov + np.diag([1e-6, 1e-6, 1e-6])
+        i0 = int(np.searchsorted(self.t, t_a, side="left"))
+        i1 = int(np.searchsorted(self.t, t_b, side="left"))
+        edges = np.concatenate([[t_a], self.t[i0:min(i1, n)], [t_b]])
+        edges = np.unique(np.clip(edges, t_a, t_b))
+        mid = (edges[:-1] + edges[1:]) // 2
+        idx = np.clip(np.searchsorted(self.t, mid, side="left"), 0, n - 1)
+        tau = np.diff(edges).astype(np.float64) / NS_PER_S
+        dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
+        q = np.array([cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2])
+        th = 0.0
+        x = y = 0.0
+        for j in range(len(tau)):
+            c, s = np.cos(th), np.sin(th)
+            f = np.array([[1.0, 0.0, -s * dx[j] - c * dy[j]],
+                          [0.0, 1.0, c * dx[j] - s * dy[j]],
+                          [0.0, 0.0, 1.0]])
+            g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            cov = f @ cov @ f.T + (g * (q * tau[j] ** 2)) @ g.T
+            x += c * dx[j] - s * dy[j]
+            y += s * dx[j] + c * dy[j]
+            th += dth[j]
+        return cov
+
+
+def between_factor(
+    key_a: int,
+    key_b: int,
+    delta: np.ndarray,
+    cov_xyt: np.ndarray,
+    out_of_plane_sigmas: tuple[float, float, float],
+) -> gtsam.BetweenFactorPose3:
+    """BetweenFactorPose3 for a planar delta with covariance in (x, y, theta).
+
+    `out_of_plane_sigmas` are (roll rad, pitch rad, z m) sigmas of the same interval.
+    Tangent order of Pose3 in GTSAM: (rx, ry, rz, tx, ty, tz).
+    """
+    cov6 = np.zeros((6, 6))
+    sr, sp, sz = out_of_plane_sigmas
+    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
+    ix = [3, 4, 2]
+    cov6[np.ix_(ix, ix)] = cov_xyt
+    # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
+    cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
+    return gtsam.BetweenFactorPose3(key_a, key_b, se2_to_pose3(delta), gaussian_covariance(cov6))
