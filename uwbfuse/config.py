@@ -162,6 +162,25 @@ class GraphConfig(_Section):
         0.05, gt=0, description="prior std of range scale factors (1 = none)"
     )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
+    nlos_mean: float = Field(
+        0.3, gt=0, description="initial mean of the NLOS range excess, metres (EM-adapted)"
+    )
+    nlos_sigma: float = Field(
+        0.15, gt=0, description="initial std of the NLOS range excess, metres (EM-adapted)"
+    )
+    nlos_rate: float = Field(
+        0.3, gt=0, lt=1, description="initial fraction of NLOS ranges (EM-adapted)"
+    )
+    nlos_switch: float = Field(
+        0.05, gt=0, lt=1, description="probability that an anchor's LOS/NLOS state changes "
+        "between two of its ranges"
+    )
+    em_iterations: int = Field(
+        4, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
+    )
+    lm_max_iterations: int = Field(
+        30, ge=1, description="batch: Levenberg-Marquardt iterations per round"
+    )
     marginal_covariances: bool = Field(
         False, description="batch: write marginal covariances beside the trajectory"
     )
