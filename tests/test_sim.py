@@ -288,6 +288,14 @@ def test_outage_and_anchor_offsets() -> None:
                0.2 * np.sin(r.yaw[i]), 0.3])) < 0.01
 
 
+def test_streams_override() -> None:
+    """test that `streams` leaves sensors out of the log (a log without wheels)"""
+    lg = simulate("factory", duration_s=3.0, streams=("imu", "uwb"))
+    assert lg.wheel is None and lg.imu is not None and lg.ranges is not None
+    with pytest.raises(SimulationError):
+        simulate("factory", duration_s=3.0, streams=("lidar",))
+
+
 def test_route_close_loop_rejects_impossible() -> None:
     """test that a route that cannot reach cruise speed is rejected"""
     with pytest.raises(SimulationError):

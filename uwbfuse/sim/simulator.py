@@ -99,6 +99,9 @@ def _validate(sc: Scenario, duration_s: float) -> None:
         raise SimulationError("still_start_s must be >= 0")
     if len(sc.anchors) < 1:
         raise SimulationError("a scenario needs at least one anchor")
+    bad = set(sc.streams) - {"imu", "wheel", "uwb"}
+    if bad or not sc.streams:
+        raise SimulationError(f"streams must be a non-empty subset of imu, wheel, uwb: {bad}")
 
 
 def _to_ns(t0_ns: int, t_s: F64) -> NDArray[np.int64]:
@@ -125,8 +128,9 @@ def simulate_with_truth(
     """Simulate `duration_s` seconds of `scenario` (a name in SCENARIOS or a Scenario).
 
     `overrides` replace Scenario fields (e.g. `still_start_s=0`, `outage=(20, 30)`,
-    `anchor_offset_max=0.1`, `tag_in_base=(0, 0, 0.3)`); unknown names and unknown
-    scenarios raise SimulationError.
+    `anchor_offset_max=0.1`, `tag_in_base=(0, 0, 0.3)`, `streams=("imu", "uwb")`); unknown
+    names and unknown scenarios raise SimulationError. Truth arrays are filled for every
+    sensor even when `streams` leaves it out of the log.
     """
     sc = get_scenario(scenario) if isinstance(scenario, str) else scenario
     sc = sc.with_overrides(**overrides) if overrides else sc
@@ -159,9 +163,11 @@ def simulate_with_truth(
 
     anchors = AnchorMap.from_dict(sc.anchor_dict())
     sensor_log = SensorLog(
-        imu=ImuStream(t_imu_ns, imu.gyro, imu.accel),
-        wheel=WheelStream(_to_ns(sc.t0_ns, t_wh), wh.v, wh.omega),
-        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range),
+        imu=ImuStream(t_imu_ns, imu.gyro, imu.accel) if "imu" in sc.streams else None,
+        wheel=WheelStream(_to_ns(sc.t0_ns, t_wh), wh.v, wh.omega)
+        if "wheel" in sc.streams else None,
+        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range)
+        if "uwb" in sc.streams else None,
         anchors=anchors,
         ground_truth=PoseStream(t_imu_ns, pos, quat, True),
         source=f"simulated:{sc.name}:seed={seed}",
