@@ -328,3 +328,24 @@ def test_cli_simulate_writes_contract_log(name: str, tmp_path: Path) -> None:
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
     assert {"/imu", "/wheel_odom", "/uwb/range", "/ground_truth"} <= topics
     assert set(meta["uwb_anchors"]) == {i for i, _ in SCENARIOS[name].anchors}
+
+
+def test_bundled_sample_matches_simulator() -> None:
+    """test that data/warehouse_60s.mcap reads back as simulate('warehouse', 60, seed=1)"""
+    reader = pytest.importorskip("uwbfuse.io.reader")
+    from uwbfuse.config import Config
+
+    path = Path(__file__).resolve().parents[1] / "data" / "warehouse_60s.mcap"
+    assert path.stat().st_size < 3_000_000
+    got = reader.read_log(path, Config())
+    want = simulate("warehouse", duration_s=60.0, seed=1)
+    assert got.anchors is not None and got.anchors.ids == want.anchors.ids
+    np.testing.assert_array_equal(got.anchors.positions, want.anchors.positions)
+    for name in ("imu", "wheel", "ranges", "ground_truth"):
+        np.testing.assert_array_equal(getattr(got, name).t_ns, getattr(want, name).t_ns)
+    np.testing.assert_allclose(got.imu.accel, want.imu.accel, atol=1e-9)
+    np.testing.assert_allclose(got.imu.gyro, want.imu.gyro, atol=1e-9)
+    np.testing.assert_allclose(got.wheel.v, want.wheel.v, atol=1e-9)
+    np.testing.assert_array_equal(got.ranges.anchor, want.ranges.anchor)
+    np.testing.assert_allclose(got.ranges.range, want.ranges.range, atol=1e-5)  # float32
+    np.testing.assert_allclose(got.ground_truth.position, want.ground_truth.position, atol=1e-9)
