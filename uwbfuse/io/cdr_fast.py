@@ -17,11 +17,12 @@ geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped (ROS 2 Humble 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
 
-from uwbfuse.io import msgdefs
+from uwbfuse.io import msgdefs, ros2msg
 
 U8 = NDArray[np.uint8]
 _CDR_LE = b"\x00\x01\x00\x00"
@@ -212,44 +213,59 @@ def encode_range(
 # decoding
 
 
-def rows_by_length(datas: Sequence[bytes]) -> list[tuple[np.ndarray, U8]]:
-    """Group messages by byte length: [(indices into datas, (n, L) uint8 matrix), ...]."""
-    if not datas:
-        return []
-    lengths = np.fromiter(map(len, datas), dtype=np.int64, count=len(datas))
-    first = int(lengths[0])
-    if np.all(lengths == first):
-        buf = np.frombuffer(b"".join(datas), dtype=np.uint8)
-        return [(np.arange(len(datas)), buf.reshape(len(datas), first))]
-    out = []
-    for length in np.unique(lengths):
-        idx = np.flatnonzero(lengths == length)
-        buf = np.frombuffer(b"".join([datas[i] for i in idx.tolist()]), dtype=np.uint8)
-        out.append((idx, buf.reshape(len(idx), int(length))))
-    return out
+@cache
+def _expected_layout(type_name: str) -> ros2msg.Layout:
+    layout = ros2msg.layout_of(type_name, msgdefs.schema_text(type_name))
+    assert layout is not None
+    return layout
 
 
-def _u32(m: U8, off: int) -> np.ndarray:
-    return _col(m, off, "<u4", 1)[:, 0]
+def fast_type(schema_name: str, schema_encoding: str, schema_text: str) -> str | None:
+    """The fast-decodable type whose layout the schema starts with, or None.
 
-
-def decode_fixed(
-    type_name: str, datas: Sequence[bytes]
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Decode messages of a fixed-layout type.
-
-    Returns (ok, columns): ok (n,) bool marks rows decoded here (the rest need the generic
-    decoder); columns hold n rows each (garbage where not ok): `t_ns` int64 header stamp,
-    `frame_id` object array of str, and per type `gyro`/`accel` (Imu, (n,3)), `v`/`omega`/
-    `position`/`quat` (Odometry), `range` (Range, float64), `position`/`quat` (PoseStamped,
-    TransformStamped).
+    The schema's flattened layout must begin with ours (trailing extra fields, as in later
+    ROS distributions, do not move the fields read here).
     """
-    n = len(datas)
-    ok = np.zeros(n, dtype=bool)
-    cols: dict[str, np.ndarray] = {
-        "t_ns": np.zeros(n, dtype=np.int64),
-        "frame_id": np.empty(n, dtype=object),
-    }
+    if schema_encoding != "ros2msg":
+        return None
+    name = ros2msg.normalize_type(schema_name)
+    for type_name in FAST_TYPES:
+        if ros2msg.normalize_type(type_name) == name:
+            break
+    else:
+        return None
+    layout = _layout_cached(schema_name, schema_text)
+    expected = _expected_layout(type_name)
+    if layout is None or layout[: len(expected)] != expected:
+        return None
+    return type_name
+
+
+@cache
+def _layout_cached(schema_name: str, schema_text: str) -> ros2msg.Layout | None:
+    return ros2msg.layout_of(schema_name, schema_text)
+
+
+def _take(arr: U8, offs: np.ndarray, width: int) -> U8:
+    """(n, width) bytes arr[o : o + width] for every offset o."""
+    return arr[offs[:, None] + np.arange(width, dtype=np.int64)]
+
+
+def _f8(arr: U8, offs: np.ndarray, k: int) -> np.ndarray:
+    """(n, k) float64 values starting at byte offsets `offs` (little-endian)."""
+    return _take(arr, offs, 8 * k).view("<f8")
+
+
+def _va4(p: np.ndarray) -> np.ndarray:
+    return (p + 3) & ~3
+
+
+def _va8(p: np.ndarray) -> np.ndarray:
+    return (p + 7) & ~7
+
+
+def _empty_columns(type_name: str, n: int) -> dict[str, np.ndarray]:
+    cols: dict[str, np.ndarray] = {"t_ns": np.zeros(n, dtype=np.int64)}
     if type_name == msgdefs.IMU:
         cols["gyro"] = np.zeros((n, 3))
         cols["accel"] = np.zeros((n, 3))
@@ -258,62 +274,87 @@ def decode_fixed(
                     quat=np.zeros((n, 4)))
     elif type_name == msgdefs.RANGE:
         cols["range"] = np.zeros(n)
+        cols["frame_id"] = np.empty(n, dtype=object)
     elif type_name in (msgdefs.POSE_STAMPED, msgdefs.TRANSFORM_STAMPED):
         cols.update(position=np.zeros((n, 3)), quat=np.zeros((n, 4)))
     else:
         raise KeyError(type_name)
-    for idx, m in rows_by_length(datas):
-        _decode_matrix(type_name, idx, m, ok, cols)
+    return cols
+
+
+def decode_at(
+    type_name: str, arr: U8, offset: np.ndarray, length: np.ndarray
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Decode the messages `arr[offset[i] : offset[i] + length[i]]` of a fixed-layout type.
+
+    Only the bytes of the fields read are gathered. Returns (ok, columns): ok (n,) bool
+    marks the messages decoded here (the rest need the generic decoder: other
+    encapsulations, lengths that do not add up); columns hold n rows each (zeros where not
+    ok): `t_ns` int64 header stamp and per type `gyro`/`accel` (Imu, (n,3)),
+    `v`/`omega`/`position`/`quat` (Odometry), `range` float64 and `frame_id` str (Range),
+    `position`/`quat` (PoseStamped, TransformStamped).
+    """
+    n = len(offset)
+    cols = _empty_columns(type_name, n)
+    ok = length >= 16
+    if not ok.any():
+        return ok, cols
+    sel = np.flatnonzero(ok)
+    o, ln = offset[sel], length[sel]
+    head = _take(arr, o, 16)
+    good = np.all(head[:, 0:4] == np.frombuffer(_CDR_LE, dtype=np.uint8), axis=1)
+    l1 = head[:, 12:16].view("<u4")[:, 0].astype(np.int64)
+    p = 12 + l1  # payload offset after the header
+    if type_name in _HAS_CHILD:
+        c = _va4(p)
+        good &= 4 + c + 4 <= ln
+        l2 = np.zeros(len(o), dtype=np.int64)
+        l2[good] = _take(arr, o[good] + 4 + c[good], 4).view("<u4")[:, 0]
+        start = _va8(c + 4 + l2)
+    elif type_name == msgdefs.RANGE:
+        start = _va4(p + 1)
+    else:
+        start = _va8(p)
+    size = {msgdefs.IMU: 37 * 8, msgdefs.ODOMETRY: 85 * 8, msgdefs.RANGE: 16}.get(type_name, 56)
+    good &= (4 + start + size <= ln) & (l1 < ln)
+    sel, o, head, start, l1 = sel[good], o[good], head[good], start[good], l1[good]
+    ok[:] = False
+    ok[sel] = True
+    sec = head[:, 4:8].view("<i4")[:, 0].astype(np.int64)
+    nsec = head[:, 8:12].view("<u4")[:, 0].astype(np.int64)
+    cols["t_ns"][sel] = sec * _NS + nsec
+    b = o + 4 + start
+    if type_name == msgdefs.IMU:
+        cols["gyro"][sel] = _f8(arr, b + 13 * 8, 3)
+        cols["accel"][sel] = _f8(arr, b + 25 * 8, 3)
+    elif type_name == msgdefs.ODOMETRY:
+        pose = _f8(arr, b, 7)
+        cols["position"][sel] = pose[:, 0:3]
+        cols["quat"][sel] = pose[:, 3:7]
+        cols["v"][sel] = _f8(arr, b + 43 * 8, 1)[:, 0]
+        cols["omega"][sel] = _f8(arr, b + 48 * 8, 1)[:, 0]
+    elif type_name == msgdefs.RANGE:
+        cols["range"][sel] = _take(arr, b + 12, 4).view("<f4")[:, 0].astype(np.float64)
+        for v1 in np.unique(l1).tolist():
+            k = l1 == v1
+            cols["frame_id"][sel[k]] = _strings(_take(arr, o[k] + 16, max(v1 - 1, 0)))
+    else:
+        pose = _f8(arr, b, 7)
+        cols["position"][sel] = pose[:, 0:3]
+        cols["quat"][sel] = pose[:, 3:7]
     return ok, cols
 
 
-def _decode_matrix(
-    type_name: str, idx: np.ndarray, m: U8, ok: np.ndarray, cols: dict[str, np.ndarray]
-) -> None:
-    length = m.shape[1]
-    if length < 16:
-        return
-    good = np.all(m[:, 0:4] == np.frombuffer(_CDR_LE, dtype=np.uint8), axis=1)
-    l1 = _u32(m, 12).astype(np.int64)
-    l2 = np.zeros(len(m), dtype=np.int64)
-    if type_name in _HAS_CHILD:
-        # the child string length sits at a4(12 + l1); read it per distinct l1
-        for v1 in np.unique(l1[good]):
-            c = 4 + _a4(_header_end(int(v1)))
-            if c + 4 <= length:
-                sel = good & (l1 == v1)
-                l2[sel] = _u32(m[sel], c)
-    key = l1 * (1 << 32) + l2
-    for kv in np.unique(key[good]):
-        v1, v2 = int(kv >> 32), int(kv & 0xFFFFFFFF)
-        start, end = _layout(type_name, v1, v2)
-        if 4 + end > length or v1 > length:
-            continue
-        sel = np.flatnonzero(good & (key == kv))
-        sub = m[sel]
-        rows = idx[sel]
-        ok[rows] = True
-        sec = _col(sub, 4, "<i4", 1)[:, 0].astype(np.int64)
-        nsec = _col(sub, 8, "<u4", 1)[:, 0].astype(np.int64)
-        cols["t_ns"][rows] = sec * _NS + nsec
-        cols["frame_id"][rows] = _strings(sub[:, 16 : 16 + max(v1 - 1, 0)])
-        s = 4 + start
-        if type_name == msgdefs.IMU:
-            block = _col(sub, s, "<f8", 37)
-            cols["gyro"][rows] = block[:, 13:16]
-            cols["accel"][rows] = block[:, 25:28]
-        elif type_name == msgdefs.ODOMETRY:
-            block = _col(sub, s, "<f8", 85)
-            cols["position"][rows] = block[:, 0:3]
-            cols["quat"][rows] = block[:, 3:7]
-            cols["v"][rows] = block[:, 43]
-            cols["omega"][rows] = block[:, 48]
-        elif type_name == msgdefs.RANGE:
-            cols["range"][rows] = _col(sub, s, "<f4", 4)[:, 3].astype(np.float64)
-        else:
-            block = _col(sub, s, "<f8", 7)
-            cols["position"][rows] = block[:, 0:3]
-            cols["quat"][rows] = block[:, 3:7]
+def decode_fixed(
+    type_name: str, datas: Sequence[bytes]
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """`decode_at` for a list of messages (ok and columns in input order)."""
+    lengths = np.fromiter(map(len, datas), dtype=np.int64, count=len(datas))
+    offsets = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+    arr = np.frombuffer(b"".join(datas), dtype=np.uint8)
+    if not len(arr):
+        arr = np.zeros(1, dtype=np.uint8)
+    return decode_at(type_name, arr, offsets, lengths)
 
 
 def _strings(chars: U8) -> np.ndarray:
@@ -326,5 +367,5 @@ def _strings(chars: U8) -> np.ndarray:
     as_bytes = np.ascontiguousarray(chars).view(f"S{k}")[:, 0]
     uniq, inv = np.unique(as_bytes, return_inverse=True)
     decoded = np.array([u.decode("utf-8", errors="replace") for u in uniq], dtype=object)
-    out[:] = decoded[inv]
+    out[:] = decoded[inv.reshape(-1)]
     return out
