@@ -1,0 +1,748 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The initial state from the sensors alone: no ground truth, no given pose.
+
+`Initialiser` is fed the same batches as an estimator and answers `try_initialise(t_ns)`
+with an `InitialState` at t_ns once the data determine one, else None.
+
+Steps:
+
+1. Standstill at the start (IMU gyro norm and accel std, wheel speed, per `[init]`):
+   gravity direction gives roll/pitch, the mean gyro gives the gyro bias, the ranges of
+   the still period give a static robust multilateration fix. Without a still start,
+   roll/pitch come from the mean specific force over the first `level_window` seconds.
+2. Heading: once the UWB track has moved `min_displacement`, a small robust nonlinear
+   least squares (scipy `least_squares`, soft-L1 loss) on the raw ranges of the motion
+   window solves the start pose: unknowns p0 (base origin, map frame), yaw0, and for an
+   IMU-only track also the start velocity and a constant acceleration error. The
+   vehicle's relative track comes from dead reckoning (wheels, with the IMU yaw rate when
+   there is one; else IMU strapdown with the standstill bias), so the tag is at
+   p0 + Rz(yaw0) (d(t) + R'(t) tag_in_base). Eight yaw seeds avoid local minima; the
+   solution is accepted when the heading std and the residuals are consistent and no
+   other minimum comes close.
+3. UWB only: position from the fixes; heading is the UWB track direction once moving
+   (or unknown, yaw_sigma = pi, after `heading_timeout` seconds without motion).
+
+The returned state refers to the latest `t_ns` given (propagated with the dead-reckoned
+track) so a streaming estimator can start from it at once. Frames: map = anchor frame
+(z up); base per REP-103; yaw-zero frame W' = level frame whose yaw is 0 at the start of
+dead reckoning.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from uwbfuse.config import Config
+from uwbfuse.positioning.multilateration import (
+    epochs_by_window,
+    group_epochs,
+    multilaterate,
+)
+from uwbfuse.streams import NS_PER_S, AnchorMap
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+_BLOCK_S = 0.1  # standstill test block length, s
+_RETRY_S = 0.5  # data time between two heading solves, s
+_N_SEEDS = 8
+_IMU_WINDOW_S = 8.0  # longest window of an IMU-only (strapdown) track, s
+_TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
+_V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
+_UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """Initial state of the base frame, from sensors only.
+
+    t_ns: time the state refers to (ns); position (3,) base origin in the map frame, m;
+    R_map_base (3,3) attitude (roll/pitch from gravity, yaw solved); velocity (3,) map
+    frame, m/s; gyro_bias (3,) IMU frame, rad/s; accel_bias (3,) IMU frame, m/s^2;
+    position_sigma (m) and yaw_sigma (rad) 1-sigma uncertainties (yaw_sigma = pi: heading
+    unknown); still: the log started with a detected standstill.
+    """
+
+    t_ns: int
+    position: np.ndarray
+    R_map_base: np.ndarray
+    velocity: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    position_sigma: float
+    yaw_sigma: float
+    still: bool
+
+    @property
+    def yaw(self) -> float:
+        """Heading of the base x axis in the map frame, rad."""
+        return float(math.atan2(self.R_map_base[1, 0], self.R_map_base[0, 0]))
+
+    @property
+    def quat_xyzw(self) -> np.ndarray:
+        """Attitude as a quaternion (x, y, z, w)."""
+        return Rotation.from_matrix(self.R_map_base).as_quat()
+
+
+def rot_z(yaw: float | F64) -> F64:
+    """Rotation(s) about z by yaw (rad): (3,3) or (N,3,3)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.moveaxis(np.array([[c, -s, z], [s, c, z], [z, z, o]]), (0, 1), (-2, -1))
+
+
+def level_from_accel(f_base: F64) -> F64:
+    """R_map_base with yaw 0 from the mean specific force in the base frame (m/s^2)."""
+    fx, fy, fz = f_base
+    roll = math.atan2(fy, fz)
+    pitch = math.atan2(-fx, math.hypot(fy, fz))
+    return Rotation.from_euler("ZYX", [0.0, pitch, roll]).as_matrix()
+
+
+def integrate_gyro(r0: F64, t_s: F64, gyro_base: F64) -> F64:
+    """Attitudes (N,3,3) from r0 at t_s[0] by integrating body rates (N,3) rad/s.
+
+    Sample k's rate applies over (t_{k-1}, t_k]; the first sample keeps r0.
+    """
+    dt = np.diff(t_s, prepend=t_s[0])
+    inc = Rotation.from_rotvec(gyro_base * dt[:, None]).as_matrix()
+    out = np.empty((len(t_s), 3, 3))
+    r = np.array(r0, dtype=np.float64)
+    for k in range(len(t_s)):
+        r = r @ inc[k]
+        out[k] = r
+    return out
+
+
+def _block_still(
+    t: F64, x: F64, block_end: F64, thr_norm: float | None, thr_std: float | None
+) -> NDArray[np.bool_]:
+    """Per block (ending at block_end, length _BLOCK_S): max norm < thr and std < thr."""
+    idx = np.searchsorted(t, block_end, side="right")
+    start = np.concatenate([[0], idx[:-1]])
+    still = np.ones(len(block_end), dtype=bool)
+    for i, (a, b) in enumerate(zip(start, idx, strict=True)):
+        seg = x[a:b]
+        if b - a == 0:
+            continue
+        if thr_norm is not None and np.max(np.linalg.norm(seg, axis=1)) >= thr_norm:
+            still[i] = False
+        if thr_std is not None and b - a > 1 and np.linalg.norm(np.std(seg, axis=0)) >= thr_std:
+            still[i] = False
+    return still
+
+
+@dataclass
+class _Track:
+    """Dead-reckoned relative track in the yaw-zero frame W', sampled at query times."""
+
+    d: F64  # (N,3) base-origin displacement from the window start, m
+    rot: F64  # (N,3,3) R_W'_base
+    vel: F64  # (N,3) velocity in W', m/s (relative to the start velocity if that is free)
+    free_velocity: bool  # start velocity unknown (IMU-only track not starting at rest)
+    sens: F64  # (N,3,P) d(d)/d(params): accel bias, gyro bias, [tilt] (IMU-only track)
+    sens_sigma: F64  # (P,) prior std of those parameters
+
+
+class Initialiser:
+    """Initial state from IMU / wheels / UWB, whichever the log has (see module doc).
+
+    config: the run's `Config` (`[init]`, `[uwb]`, `[imu]`, `[extrinsics]`); anchors: the
+    anchor map (None: no ranges, start at the map origin heading zero); streams: the
+    sensor streams the log has, subset of {"imu", "wheel", "uwb"}.
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        anchors: AnchorMap | None,
+        streams: frozenset[str],
+        *,
+        estimate_range_bias: bool = False,
+    ) -> None:
+        self.config = config
+        self.anchors = anchors
+        self.streams = frozenset(streams)
+        self.has_imu = "imu" in self.streams
+        self.has_wheel = "wheel" in self.streams
+        self.has_uwb = "uwb" in self.streams and anchors is not None and len(anchors) > 0
+        self.planar = self.has_wheel
+        self.estimate_range_bias = estimate_range_bias
+        self.lever = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        q = config.extrinsics.imu_in_base[3:]
+        self.R_base_imu = Rotation.from_quat(q).as_matrix()
+        self._imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._wheel: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._rng: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._cache: dict[str, tuple[np.ndarray, ...]] = {}
+        self._last_attempt_ns: int | None = None
+        self._f_level = np.array([0.0, 0.0, config.imu.gravity])  # mean f used to level
+        self.attempts = 0
+        self.last_reason = "no data"
+
+    # ------------------------------------------------------------------ input
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """IMU batch: stamps (N,) ns, gyro (N,3) rad/s, specific force (N,3) m/s^2, IMU frame."""
+        if len(t_ns):
+            self._imu.append((np.asarray(t_ns), np.asarray(gyro), np.asarray(accel)))
+            self._cache.pop("imu", None)
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        """Wheel batch: stamps (N,) ns, forward speed (N,) m/s, yaw rate (N,) rad/s."""
+        if len(t_ns):
+            self._wheel.append((np.asarray(t_ns), np.asarray(v), np.asarray(omega)))
+            self._cache.pop("wheel", None)
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
+        if len(t_ns):
+            self._rng.append((np.asarray(t_ns), np.asarray(anchor), np.asarray(rng)))
+            self._cache.pop("rng", None)
+
+    def _cat(self, name: str) -> tuple[np.ndarray, ...]:
+        if name not in self._cache:
+            src = {"imu": self._imu, "wheel": self._wheel, "rng": self._rng}[name]
+            if not src:
+                return ()
+            cols = tuple(np.concatenate(c) for c in zip(*src, strict=True))
+            order = np.argsort(cols[0], kind="stable")
+            cols = tuple(c[order] for c in cols)
+            src[:] = [cols]
+            self._cache[name] = cols
+        return self._cache[name]
+
+    # ------------------------------------------------------------------ main
+    def try_initialise(self, t_ns: int) -> InitialState | None:
+        """The initial state at t_ns from data with stamps <= t_ns, or None if undetermined."""
+        imu = self._upto(self._cat("imu"), t_ns)
+        wheel = self._upto(self._cat("wheel"), t_ns)
+        rng = self._upto(self._cat("rng"), t_ns)
+        if self.has_imu and (not imu or len(imu[0]) < 2):
+            self.last_reason = "waiting for IMU data"
+            return None
+        if self.has_wheel and (not wheel or len(wheel[0]) < 2):
+            self.last_reason = "waiting for wheel data"
+            return None
+        still = self._standstill(imu, wheel, t_ns)
+        if still is None:
+            return None
+        still_end_ns, still_ok, r_level, gyro_bias, accel_bias = still
+        if not self.has_uwb:
+            return self._no_ranges_state(t_ns, imu, wheel, r_level, gyro_bias, accel_bias,
+                                         still_ok, still_end_ns)
+        if not rng or len(rng[0]) < 3:
+            self.last_reason = "waiting for ranges"
+            return None
+        if not self.has_imu and not self.has_wheel:
+            return self._uwb_only(t_ns, rng)
+        if still_ok and still_end_ns is None:
+            self.last_reason = "standing still"
+            return None
+        if self._last_attempt_ns is not None and t_ns - self._last_attempt_ns < _RETRY_S * NS_PER_S:
+            return None
+        motion_start = still_end_ns if still_ok and still_end_ns is not None else None
+        return self._solve_heading(
+            t_ns, imu, wheel, rng, r_level, gyro_bias, accel_bias, still_ok, motion_start
+        )
+
+    @staticmethod
+    def _upto(cols: tuple[np.ndarray, ...], t_ns: int) -> tuple[np.ndarray, ...]:
+        if not cols:
+            return ()
+        n = int(np.searchsorted(cols[0], t_ns, side="right"))
+        return tuple(c[:n] for c in cols)
+
+    # ------------------------------------------------------------------ standstill
+    def _standstill(
+        self, imu: tuple, wheel: tuple, t_ns: int
+    ) -> tuple[int | None, bool, F64, F64, F64] | None:
+        """(still_end_ns or None if still ongoing, still start?, R_level, b_g, b_a) or None.
+
+        None means: not enough data yet to level the IMU.
+        """
+        cfg = self.config.init
+        t0_candidates = [int(c[0][0]) for c in (imu, wheel) if c]
+        zeros = np.zeros(3)
+        if not t0_candidates:
+            return None, False, np.eye(3), zeros, zeros  # UWB only: nothing to level
+        t0 = min(t0_candidates)
+        t_end = t_ns
+        n_blocks = int((t_end - t0) / (_BLOCK_S * NS_PER_S))
+        block_end = (t0 + (np.arange(1, n_blocks + 1) * _BLOCK_S * NS_PER_S)).astype(np.int64)
+        still = np.ones(n_blocks, dtype=bool)
+        if imu and n_blocks:
+            gyro_thr = cfg.standstill_gyro_max
+            still &= _block_still(imu[0], imu[1], block_end, gyro_thr, None)
+            still &= _block_still(imu[0], imu[2], block_end, None, cfg.standstill_accel_std_max)
+        if wheel and n_blocks:
+            wv = np.column_stack([wheel[1], np.zeros_like(wheel[1])])
+            wo = np.column_stack([wheel[2], np.zeros_like(wheel[2])])
+            still &= _block_still(wheel[0], wv, block_end, cfg.min_motion, None)
+            still &= _block_still(wheel[0], wo, block_end, cfg.standstill_gyro_max * 3, None)
+        if imu and n_blocks:
+            # Smooth accelerations hide from the per-block std: also compare each block's
+            # mean specific force with the mean of the blocks before it.
+            idx = np.searchsorted(imu[0], block_end, side="right")
+            csum = np.vstack([np.zeros((1, 3)), np.cumsum(imu[2], axis=0)])
+            cnt = np.maximum(np.diff(np.concatenate([[0], idx])), 1)
+            bmean = (csum[idx] - csum[np.concatenate([[0], idx[:-1]])]) / cnt[:, None]
+            ref = csum[np.concatenate([[0], idx[:-1]])] / np.maximum(
+                np.concatenate([[0], idx[:-1]]), 1)[:, None]
+            dev = np.linalg.norm(bmean - ref, axis=1)
+            dev[0] = 0.0
+            still &= dev < cfg.standstill_accel_std_max
+        moving = np.flatnonzero(~still)
+        n_still = int(moving[0]) if len(moving) else n_blocks
+        still_s = n_still * _BLOCK_S
+        ended = len(moving) > 0
+        still_ok = still_s >= cfg.standstill_window
+        if not still_ok and not ended:
+            self.last_reason = "waiting for a standstill window or motion"
+            return None
+        still_end = int(t0 + n_still * _BLOCK_S * NS_PER_S)
+        r_level = np.eye(3)
+        bg, ba = zeros, zeros
+        if imu:
+            g = self.config.imu.gravity
+            if still_ok:
+                sel = imu[0] < still_end
+                bg = np.mean(imu[1][sel], axis=0)
+                f_imu = np.mean(imu[2][sel], axis=0)
+                f_norm = float(np.linalg.norm(f_imu))
+                ba = (f_norm - g) * f_imu / max(f_norm, 1e-9)
+            else:
+                lw = int(cfg.level_window * NS_PER_S)
+                if imu[0][-1] - imu[0][0] < lw:
+                    self.last_reason = "levelling: waiting for level_window of IMU data"
+                    return None
+                sel = imu[0] <= imu[0][0] + lw
+                f_imu = np.mean(imu[2][sel], axis=0)
+            self._f_level = f_imu
+            r_level = level_from_accel(self.R_base_imu @ f_imu)
+        return (still_end if ended else None), still_ok, r_level, bg, ba
+
+    # ------------------------------------------------------------------ pieces
+    def _range_sigma(self) -> float:
+        return float(self.config.uwb.sigma)
+
+    def _fixes(self, rng: tuple, t_from: int | None = None) -> tuple[F64, F64, F64]:
+        """Per-epoch 3-D fixes (tag) over the range data: (t_s (K,), pos (K,3), ok (K,))."""
+        assert self.anchors is not None
+        t, a, r = rng
+        if t_from is not None:
+            sel = t >= t_from
+            t, a, r = t[sel], a[sel], r[sel]
+        window_ns = int(self.config.wls.window * NS_PER_S)
+        ep = epochs_by_window(t, window_ns)
+        if not len(ep):
+            return np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=bool)
+        grid, _ = group_epochs(t, a, r, len(self.anchors), ep, window_ns)
+        fx = multilaterate(
+            self.anchors.positions, grid, dim=3, sigma=self._range_sigma(),
+            kernel=self.config.uwb.robust_kernel, threshold=self.config.uwb.kernel_threshold,
+        )
+        return ep.astype(np.float64) / NS_PER_S, fx.position, fx.ok
+
+    def _static_fix(self, rng: tuple, t_from: int, t_to: int) -> tuple[F64, float] | None:
+        """Robust fix of the tag from the ranges in [t_from, t_to): (pos (3,), sigma m)."""
+        assert self.anchors is not None
+        t, a, r = rng
+        sel = (t >= t_from) & (t < t_to)
+        m = len(self.anchors)
+        if np.count_nonzero(sel) < 3:
+            return None
+        med = np.full(m, np.nan)
+        cnt = np.bincount(a[sel], minlength=m)
+        for k in np.flatnonzero(cnt):
+            med[k] = np.median(r[sel][a[sel] == k])
+        sig = self._range_sigma() / np.sqrt(np.maximum(cnt, 1))
+        fx = multilaterate(self.anchors.positions, med[None, :], dim=3,
+                           sigma=np.where(cnt > 0, sig, 1.0)[None, :])
+        if not fx.ok[0]:
+            return None
+        return fx.position[0], float(np.sqrt(np.trace(fx.cov[0])))
+
+    def _imu_strapdown(
+        self, imu: tuple, gyro_bias: F64, accel_bias: F64, r_level: F64, t_start_s: float,
+        tq: F64, rot_i: F64 | None = None,
+    ) -> tuple[F64, F64, F64]:
+        """IMU-only track in W' at tq: (d (N,3) from t_start_s at rest, rot (N,3,3), vel).
+
+        rot_i: attitudes at the IMU samples if already integrated (same gyro bias/level).
+        """
+        g = self.config.imu.gravity
+        ti = imu[0].astype(np.float64) / NS_PER_S
+        if rot_i is None:
+            rot_i = integrate_gyro(r_level, ti, (imu[1] - gyro_bias) @ self.R_base_imu.T)
+        f_base = (imu[2] - accel_bias) @ self.R_base_imu.T
+        acc = np.einsum("nij,nj->ni", rot_i, f_base) - np.array([0.0, 0.0, g])
+        sel = ti > t_start_s
+        ts = np.concatenate([[t_start_s], ti[sel]])
+        acc_s = acc[sel]
+        # Sample k's specific force applies over (t_{k-1}, t_k].
+        dt = np.diff(ts)
+        vel = np.vstack([np.zeros((1, 3)), np.cumsum(acc_s * dt[:, None], axis=0)])
+        pos = np.vstack([np.zeros((1, 3)),
+                         np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dt[:, None], axis=0)])
+        d = np.column_stack([np.interp(tq, ts, pos[:, k]) for k in range(3)])
+        vq = np.column_stack([np.interp(tq, ts, vel[:, k]) for k in range(3)])
+        idx = np.clip(np.searchsorted(ti, tq, side="right") - 1, 0, len(ti) - 1)
+        return d, rot_i[idx], vq
+
+    def _track(
+        self, imu: tuple, wheel: tuple, r_level: F64, gyro_bias: F64, accel_bias: F64,
+        t_start_s: float, tq: F64, v0_known: bool, still_ok: bool,
+    ) -> _Track:
+        """Dead-reckoned track at query times tq (s) relative to the window start t_start_s.
+
+        For an IMU-only track, `sens` holds the first-order sensitivities of d to the
+        accelerometer bias, gyro bias and (without a still start) the level tilt, each
+        found by re-running the strapdown with the parameter perturbed (finite
+        differences); the heading solve estimates these small corrections.
+        """
+        if self.has_wheel:
+            tw = wheel[0].astype(np.float64) / NS_PER_S
+            v, om = wheel[1], wheel[2]
+            dtw = np.diff(tw, prepend=tw[0])
+            if imu:
+                ti = imu[0].astype(np.float64) / NS_PER_S
+                w_base = (imu[1] - gyro_bias) @ self.R_base_imu.T
+                rot_i = integrate_gyro(r_level, ti, w_base)
+                yaw_i = np.unwrap(np.arctan2(rot_i[:, 1, 0], rot_i[:, 0, 0]))
+                yaw_w = np.interp(tw, ti, yaw_i)
+            else:
+                yaw_w = np.cumsum(om * dtw)
+            yaw_prev = np.concatenate([[yaw_w[0]], yaw_w[:-1]])
+            ym = 0.5 * (yaw_w + yaw_prev)
+            step = np.column_stack([v * dtw * np.cos(ym), v * dtw * np.sin(ym), np.zeros_like(v)])
+            pos = np.cumsum(step, axis=0)
+            p_start = np.array([np.interp(t_start_s, tw, pos[:, k]) for k in range(3)])
+            d = np.column_stack([np.interp(tq, tw, pos[:, k]) for k in range(3)]) - p_start
+            yq = np.interp(tq, tw, yaw_w)
+            rq = np.einsum("nij,jk->nik", rot_z(yq), r_level) if imu else rot_z(yq)
+            k_last = np.clip(np.searchsorted(tw, tq, side="left"), 0, len(tw) - 1)
+            vel = np.column_stack(
+                [v[k_last] * np.cos(yq), v[k_last] * np.sin(yq), np.zeros_like(yq)]
+            )
+            return _Track(d, rq, vel, False, np.zeros((len(tq), 3, 0)), np.zeros(0))
+        ti = imu[0].astype(np.float64) / NS_PER_S
+        rot0 = integrate_gyro(r_level, ti, (imu[1] - gyro_bias) @ self.R_base_imu.T)
+        d0, rq, vq = self._imu_strapdown(imu, gyro_bias, accel_bias, r_level, t_start_s, tq,
+                                         rot0)
+        icfg = self.config.imu
+        cols, sigmas = [], []
+        h_a, h_g, h_t = 0.01, 1e-3, 1e-3
+        f_lvl = self._f_level
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1.0
+            ba = accel_bias + h_a * e
+            # With a still start the level follows the bias: gravity = mean f - bias.
+            rl = level_from_accel(self.R_base_imu @ (f_lvl - ba)) if still_ok else r_level
+            rot1 = np.einsum("ij,njk->nik", rl @ r_level.T, rot0)
+            d1, _, _ = self._imu_strapdown(imu, gyro_bias, ba, rl, t_start_s, tq, rot1)
+            cols.append((d1 - d0) / h_a)
+            sigmas.append(icfg.accel_bias_sigma)
+        bg_sigma = 0.002 if still_ok else icfg.gyro_bias_sigma
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = 1.0
+            d1, _, _ = self._imu_strapdown(imu, gyro_bias + h_g * e, accel_bias, r_level,
+                                           t_start_s, tq)
+            cols.append((d1 - d0) / h_g)
+            sigmas.append(bg_sigma)
+        if not still_ok:
+            for k in range(2):
+                e = np.zeros(3)
+                e[k] = h_t
+                tilt = Rotation.from_rotvec(e).as_matrix()
+                rot1 = np.einsum("ij,njk->nik", tilt, rot0)
+                d1, _, _ = self._imu_strapdown(imu, gyro_bias, accel_bias, tilt @ r_level,
+                                               t_start_s, tq, rot1)
+                cols.append((d1 - d0) / h_t)
+                sigmas.append(_TILT_SIGMA)
+        sens = np.stack(cols, axis=2)
+        return _Track(d0, rq, vq, not v0_known, sens, np.array(sigmas))
+
+    # ------------------------------------------------------------------ heading
+    def _solve_heading(
+        self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple, r_level: F64,
+        gyro_bias: F64, accel_bias: F64, still_ok: bool, motion_start: int | None,
+    ) -> InitialState | None:
+        assert self.anchors is not None
+        cfg = self.config.init
+        t_first = min(int(c[0][0]) for c in (imu, wheel, rng) if c)
+        w_start = motion_start if motion_start is not None else t_first
+        max_win = cfg.max_window
+        if not self.has_wheel and motion_start is None:
+            max_win = min(max_win, _IMU_WINDOW_S)
+        w_start = max(w_start, int(t_ns - max_win * NS_PER_S))
+        v0_known = motion_start is not None and w_start == motion_start
+        tf, pf, okf = self._fixes(rng, w_start)
+        pf, tf = pf[okf], tf[okf]
+        if len(pf) < 6:
+            self.last_reason = "too few UWB fixes in the motion window"
+            return None
+        head = np.median(pf[:3, :2], axis=0)
+        disp = float(np.percentile(np.linalg.norm(pf[:, :2] - head, axis=1), 90))
+        if disp < cfg.min_displacement:
+            self.last_reason = f"UWB track moved {disp:.2f} m < min_displacement"
+            return None
+        self._last_attempt_ns = t_ns
+        self.attempts += 1
+        t, a, r = rng
+        sel = t >= w_start
+        tr = t[sel].astype(np.float64) / NS_PER_S
+        ar, rr = a[sel], r[sel]
+        ts0 = w_start / NS_PER_S
+        t_now = t_ns / NS_PER_S
+        tq = np.concatenate([[ts0], tr, [t_now]])
+        trk = self._track(imu, wheel, r_level, gyro_bias, accel_bias, ts0, tq, v0_known,
+                          still_ok)
+        lev = np.einsum("nij,j->ni", trk.rot, self.lever)
+        w0 = trk.d[1:-1] + lev[1:-1]  # tag in W' relative to the base at the window start
+        sens = trk.sens[1:-1]
+        lev0 = lev[0]
+        dtr = tr - ts0
+        anc = self.anchors.positions[ar]
+        sig = self._range_sigma()
+        prior = None
+        if motion_start is not None and v0_known:
+            prior = self._static_fix(rng, t_first, motion_start)
+        solve_v = trk.free_velocity
+        use_b = self.estimate_range_bias
+        n_s = len(trk.sens_sigma)
+        i_v = 4
+        i_s = i_v + 3 * solve_v
+        i_b = i_s + n_s
+        n_unk = i_b + use_b
+        n_r = len(rr)
+        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + use_b
+
+        def fun_jac(x: F64) -> tuple[F64, F64]:
+            p0, yaw0 = x[:3], x[3]
+            rz = rot_z(yaw0)
+            drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
+                            [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
+            w = w0 + (sens @ x[i_s:i_b] if n_s else 0.0)
+            tag = p0 + w @ rz.T
+            if solve_v:
+                tag = tag + np.outer(dtr, x[i_v:i_v + 3])
+            diff = tag - anc
+            dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-6)
+            u = diff / dist[:, None]
+            b = x[i_b] if use_b else 0.0
+            f = np.empty(n_r + n_prior)
+            jac = np.zeros((n_r + n_prior, n_unk))
+            f[:n_r] = (dist + b - rr) / sig
+            jac[:n_r, :3] = u / sig
+            jac[:n_r, 3] = np.einsum("ni,ni->n", u, w @ drz.T) / sig
+            if solve_v:
+                jac[:n_r, i_v:i_v + 3] = u * dtr[:, None] / sig
+            if n_s:
+                jac[:n_r, i_s:i_b] = np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
+            if use_b:
+                jac[:n_r, i_b] = 1.0 / sig
+            row = n_r
+            if prior is not None:
+                sp = max(prior[1], 0.02)
+                f[row:row + 3] = (p0 + rz @ lev0 - prior[0]) / sp
+                jac[row:row + 3, :3] = np.eye(3) / sp
+                jac[row:row + 3, 3] = drz @ lev0 / sp
+                row += 3
+            if solve_v:
+                f[row:row + 3] = x[i_v:i_v + 3] / _V0_SIGMA
+                jac[row:row + 3, i_v:i_v + 3] = np.eye(3) / _V0_SIGMA
+                row += 3
+            if n_s:
+                f[row:row + n_s] = x[i_s:i_b] / trk.sens_sigma
+                jac[row:row + n_s, i_s:i_b] = np.diag(1.0 / trk.sens_sigma)
+                row += n_s
+            if use_b:
+                rb = self.config.graph.range_bias_sigma
+                f[row] = x[i_b] / rb
+                jac[row, i_b] = 1.0 / rb
+            return f, jac
+
+        cache: dict[bytes, tuple[F64, F64]] = {}
+
+        def fun(x: F64) -> F64:
+            key = x.tobytes()
+            if key not in cache:
+                cache.clear()
+                cache[key] = fun_jac(x)
+            return cache[key][0]
+
+        def jac(x: F64) -> F64:
+            key = x.tobytes()
+            if key not in cache:
+                cache.clear()
+                cache[key] = fun_jac(x)
+            return cache[key][1]
+
+        tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
+        v_seed = np.zeros(3)
+        if solve_v and len(tf) >= 2:
+            k = min(len(tf), 10)
+            span = tf[k - 1] - tf[0]
+            if span > 0:
+                v_seed = (pf[k - 1] - pf[0]) / span
+        sols = []
+        for yaw_s in np.linspace(-np.pi, np.pi, _N_SEEDS, endpoint=False):
+            x0 = np.zeros(n_unk)
+            x0[:3] = tag_seed - rot_z(yaw_s) @ lev0
+            x0[3] = yaw_s
+            if solve_v:
+                x0[i_v:i_v + 3] = v_seed
+            try:
+                sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=2.0,
+                                    max_nfev=50)
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            sols.append(sol)
+        if not sols:
+            self.last_reason = "heading solve failed"
+            return None
+        sols.sort(key=lambda s: s.cost)
+        best = sols[0]
+        yaw_best = _wrap(best.x[3])
+        rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > math.radians(20)]
+        dof = max(n_r - n_unk, 1)
+        scale2 = max(1.0, 2.0 * best.cost / dof)
+        try:
+            cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
+        except np.linalg.LinAlgError:
+            self.last_reason = "heading solve singular"
+            return None
+        yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
+        res = best.fun[:n_r]
+        mad = float(np.median(np.abs(res))) * 1.4826
+        inliers = float(np.mean(np.abs(res) < 3.0))
+        margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
+        consistent = mad <= 3.0 and inliers >= 0.6
+        # After a full window without a determined heading, start anyway with the best
+        # solution and its (large) yaw std: the estimator must start from what it has.
+        waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
+            motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
+        determined = yaw_sigma <= cfg.max_yaw_sigma and margin >= 9.0
+        if not consistent or not (determined or waited):
+            self.last_reason = (
+                f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
+                f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})"
+            )
+            return None
+        x = best.x
+        p0, yaw0 = x[:3], float(x[3])
+        v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
+        dt_now = t_now - ts0
+        rz = rot_z(yaw0)
+        d_now = trk.d[-1] + (trk.sens[-1] @ x[i_s:i_b] if n_s else 0.0)
+        pos = p0 + v0 * dt_now + rz @ d_now
+        r_now = rz @ trk.rot[-1]
+        vel = v0 + rz @ trk.vel[-1]
+        ba, bg = accel_bias.copy(), gyro_bias.copy()
+        if n_s:
+            ba = ba + x[i_s:i_s + 3]
+            bg = bg + x[i_s + 3:i_s + 6]
+        # Position std at t_ns: the solved covariance mapped through pos(x).
+        grad = np.zeros((3, n_unk))
+        grad[:, :3] = np.eye(3)
+        drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
+                        [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
+        grad[:, 3] = drz @ d_now
+        if solve_v:
+            grad[:, i_v:i_v + 3] = np.eye(3) * dt_now
+        if n_s:
+            grad[:, i_s:i_b] = rz @ trk.sens[-1]
+        pcov = grad @ cov @ grad.T
+        pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
+        log.debug("initialised at %.3f s: yaw %.1f deg (std %.2f deg)", t_now,
+                  math.degrees(math.atan2(r_now[1, 0], r_now[0, 0])), math.degrees(yaw_sigma))
+        self.last_reason = "initialised"
+        return InitialState(
+            t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
+            gyro_bias=bg, accel_bias=ba, position_sigma=pos_sigma, yaw_sigma=yaw_sigma,
+            still=still_ok,
+        )
+
+    # ------------------------------------------------------------------ UWB only
+    def _uwb_only(self, t_ns: int, rng: tuple) -> InitialState | None:
+        cfg = self.config.init
+        tf, pf, okf = self._fixes(rng)
+        tf, pf = tf[okf], pf[okf]
+        if len(tf) < 5:
+            self.last_reason = "too few UWB fixes"
+            return None
+        t_now = t_ns / NS_PER_S
+        sel = tf >= t_now - _UWB_TRACK_S
+        if np.count_nonzero(sel) < 5:
+            self.last_reason = "too few recent UWB fixes"
+            return None
+        ts, ps = tf[sel] - t_now, pf[sel]
+        # Robust straight-line fit p(t) = p + v t over the recent fixes (IRLS, Huber).
+        a_mat = np.column_stack([np.ones_like(ts), ts])
+        w = np.ones(len(ts))
+        sig = self._range_sigma()
+        for _ in range(5):
+            aw = a_mat * w[:, None]
+            coef, *_ = np.linalg.lstsq(aw, ps * w[:, None], rcond=None)
+            res = np.linalg.norm(ps - a_mat @ coef, axis=1)
+            w = np.sqrt(np.where(res < 2 * sig, 1.0, 2 * sig / np.maximum(res, 1e-9)))
+        p_now, v = coef[0], coef[1]
+        resid = ps - a_mat @ coef
+        s2 = float(np.sum((w[:, None] * resid[:, :2]) ** 2) / max(2 * len(ts) - 4, 1))
+        cov_v = s2 * np.linalg.inv(a_mat.T @ (a_mat * (w**2)[:, None]))[1, 1]
+        speed = float(np.linalg.norm(v[:2]))
+        moved = speed * (ts[-1] - ts[0])
+        since_first = t_now - tf[0]
+        yaw_sigma = math.sqrt(cov_v) / max(speed, 1e-9)
+        if speed >= cfg.min_motion and moved >= cfg.min_displacement * 0.5 and (
+            yaw_sigma <= 2 * cfg.max_yaw_sigma
+        ):
+            yaw = math.atan2(v[1], v[0])
+        elif since_first >= cfg.heading_timeout:
+            yaw, yaw_sigma = 0.0, math.pi
+            if speed >= cfg.min_motion:
+                yaw = math.atan2(v[1], v[0])
+                yaw_sigma = min(math.pi, yaw_sigma)
+        else:
+            self.last_reason = "UWB only: waiting for motion to give the track direction"
+            return None
+        rz = rot_z(yaw)
+        vel = np.array([v[0], v[1], 0.0 if self.planar else v[2]])
+        pos = p_now - rz @ self.lever
+        pos_sigma = math.sqrt(s2 / max(len(ts), 1) * 2) + 0.0
+        self.last_reason = "initialised (UWB only)"
+        return InitialState(
+            t_ns=int(t_ns), position=pos, R_map_base=rz, velocity=vel,
+            gyro_bias=np.zeros(3), accel_bias=np.zeros(3),
+            position_sigma=float(max(pos_sigma, sig / 3)), yaw_sigma=float(yaw_sigma),
+            still=False,
+        )
+
+    # ------------------------------------------------------------------ no ranges
+    def _no_ranges_state(
+        self, t_ns: int, imu: tuple, wheel: tuple, r_level: F64, gyro_bias: F64,
+        accel_bias: F64, still_ok: bool, still_end: int | None,
+    ) -> InitialState:
+        """Without ranges: the map origin, heading zero, at t_ns (dead reckoning frame)."""
+        del imu, wheel, still_end
+        self.last_reason = "initialised at the map origin (no ranges)"
+        return InitialState(
+            t_ns=int(t_ns), position=np.zeros(3), R_map_base=r_level, velocity=np.zeros(3),
+            gyro_bias=gyro_bias.copy(), accel_bias=accel_bias.copy(), position_sigma=0.0,
+            yaw_sigma=0.0, still=still_ok,
+        )
+
+
+def _wrap(a: float) -> float:
+    """Angle wrapped to [-pi, pi), rad."""
+    return float((a + math.pi) % (2 * math.pi) - math.pi)
