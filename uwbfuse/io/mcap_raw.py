@@ -313,7 +313,12 @@ class _Scanner:
         ops = arr[s] if len(s) else np.zeros(0, np.uint8)
         ends = np.flatnonzero((ops == OP_DATA_END) | (ops == OP_FOOTER))
         complete = bool(len(ends))
-        if complete:  # the summary section after DataEnd repeats what we need
+        if complete:
+            # the summary section repeats schemas and channels: take them first, so that
+            # a damaged chunk holding the originals loses only its own messages
+            for pos, op in zip(s[ends[0]:].tolist(), ops[ends[0]:].tolist(), strict=True):
+                if op in (OP_SCHEMA, OP_CHANNEL):
+                    self._record(buf, pos, op)
             s, ops = s[: ends[0]], ops[: ends[0]]
         is_msg = ops == OP_MESSAGE
         other = list(zip(s[~is_msg].tolist(), ops[~is_msg].tolist(), strict=True))
