@@ -250,7 +250,9 @@ def cluster(
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
-            dashboard_address=":8787" if dashboard else None,
+            # Without --dashboard, the scheduler's HTTP server still runs: on a free port.
+            dashboard_address=":8787" if dashboard else "127.0.0.1:0",
+            scheduler_kwargs={"dashboard": dashboard},
             silence_logs=logging.ERROR,
         )
     except OSError as e:
