@@ -1,0 +1,449 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Streaming plumbing shared by the Kalman baselines (EKF, UKF).
+
+`StreamingFilter` implements the `Estimator` protocol once: it buffers the batches of each
+stream, feeds them to the initialiser until it yields a start state, then on every
+`step(t_ns)` cuts the time since the last step into windows of at most `MAX_WINDOW_NS`
+(0.1 s) and hands each window's measurements, in time order, to the concrete filter's
+`_window` (predict through the window, update with the window's measurements, each at its
+own time), ending at t_ns exactly.
+
+Process inputs: with an IMU, IMU samples drive the process (zero-order hold: a sample holds
+from its stamp to the next one) and wheel samples are velocity measurements applied at the
+middle of the interval they average. Without an IMU, the wheel samples drive a planar
+unicycle (a sample covers the interval that ends at its stamp).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from uwbfuse.config import Config
+from uwbfuse.errors import EstimatorError
+from uwbfuse.estimator import PoseEstimate
+from uwbfuse.filters.models import F64, NS_PER_S, gate_threshold, imu_to_base
+from uwbfuse.streams import AnchorMap, PoseStream
+
+log = logging.getLogger(__name__)
+
+
+class InitialStateLike(Protocol):
+    """What the filters read from `uwbfuse.positioning.initialisation.InitialState`."""
+
+    t_ns: int
+    position: np.ndarray          # (3,) m, base origin in the map frame
+    R_map_base: np.ndarray        # (3,3)
+    velocity: np.ndarray          # (3,) m/s, map frame
+    gyro_bias: np.ndarray         # (3,) rad/s
+    accel_bias: np.ndarray        # (3,) m/s^2
+    position_sigma: float         # m
+    yaw_sigma: float              # rad
+    still: bool
+
+
+class InitialiserLike(Protocol):
+    """The streaming initialiser: same add_* methods as an estimator."""
+
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None: ...
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None: ...
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None: ...
+
+    def try_initialise(self, t_ns: int) -> InitialStateLike | None: ...
+
+
+def default_initialiser(
+    config: Config, anchors: AnchorMap, streams: frozenset[str]
+) -> InitialiserLike:
+    """The project's initialiser (UWB multilateration + IMU levelling), imported lazily."""
+    try:
+        from uwbfuse.positioning.initialisation import Initialiser
+    except ImportError as exc:  # pragma: no cover - only while the module is missing
+        raise EstimatorError(f"filter initialiser unavailable: {exc}") from exc
+    return Initialiser(config, anchors, streams)
+
+
+@dataclass
+class _Pending:
+    """Buffered batches of one stream, concatenated lazily."""
+
+    chunks: list[tuple[np.ndarray, ...]]
+
+    def take(self) -> tuple[np.ndarray, ...] | None:
+        if not self.chunks:
+            return None
+        if len(self.chunks) == 1:
+            out = self.chunks[0]
+        else:
+            out = tuple(np.concatenate(c) for c in zip(*self.chunks, strict=True))
+        self.chunks = []
+        return out
+
+
+#: Longest stretch of time handled as one predict/update window, ns.
+MAX_WINDOW_NS = 100_000_000
+
+
+class StreamingFilter:
+    """Base of the Kalman baselines: buffering, initialisation, event ordering, reports.
+
+    Subclasses implement `_start`, `_window`, `_inflate` and `_pose`.
+    """
+
+    #: Consecutive gated ranges after which the position covariance is inflated.
+    MAX_CONSECUTIVE_GATED = 20
+
+    def __init__(
+        self,
+        config: Config,
+        anchors: AnchorMap,
+        streams: frozenset[str],
+        initialiser: InitialiserLike | None = None,
+    ) -> None:
+        if "uwb" not in streams:
+            raise EstimatorError("Kalman baselines need UWB ranges")
+        self.config = config
+        self.anchors = anchors
+        self.anchor_pos: F64 = np.asarray(anchors.positions, dtype=np.float64)
+        self.has_imu = "imu" in streams
+        self.has_wheel = "wheel" in streams
+        if not self.has_imu and not self.has_wheel:
+            raise EstimatorError(
+                "Kalman baselines need an IMU or wheel odometry besides UWB ranges"
+            )
+        self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        self.sigma_r2 = config.uwb.sigma**2
+        self.gating = config.ekf.gating
+        self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
+        self.planar = self.has_wheel and config.graph.planar != "off"
+        self.initialiser = initialiser or default_initialiser(config, anchors, streams)
+        self._init_pending = True
+        self._imu_in = _Pending([])
+        self._wheel_in = _Pending([])
+        self._range_in = _Pending([])
+        # Process-input buffers (unconsumed samples) and the held IMU sample.
+        self._imu_t = np.zeros(0, dtype=np.int64)
+        self._imu_w = np.zeros((0, 3))
+        self._imu_f = np.zeros((0, 3))
+        self._imu_i = 0
+        self.held_w: F64 | None = None
+        self.held_f: F64 | None = None
+        self._wheel_t = np.zeros(0, dtype=np.int64)
+        self._wheel_v = np.zeros(0)
+        self._wheel_w = np.zeros(0)
+        self._wheel_i = 0
+        self.held_v = 0.0
+        self.held_omega = 0.0
+        self._last_wheel_t: int | None = None
+        self._wheel_in_carry: list[tuple[np.ndarray, ...]] = []
+        self._range_carry: list[tuple[np.ndarray, ...]] = []
+        self._wheel_meas: tuple[np.ndarray, ...] | None = None
+        self._ranges: tuple[np.ndarray, ...] | None = None
+        self.t_cur: int | None = None
+        self.t_init: int | None = None
+        self.used: Counter[int] = Counter()
+        self.gated: Counter[int] = Counter()
+        self.consecutive_gated = 0
+        self.gate_resets = 0
+        self.stale = 0
+
+    # -- Estimator protocol -------------------------------------------------------------
+
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """IMU batch: stamps (N,) ns, gyro (N,3) rad/s, specific force (N,3) m/s^2, IMU frame."""
+        if self._init_pending:
+            self.initialiser.add_imu(t_ns, gyro, accel)
+        w, f = imu_to_base(
+            np.asarray(gyro, np.float64), np.asarray(accel, np.float64),
+            self.config.extrinsics.imu_in_base,
+        )
+        self._imu_in.chunks.append((np.asarray(t_ns, np.int64), w, f))
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        """Wheel batch: stamps (N,) ns, forward speed (N,) m/s, yaw rate (N,) rad/s."""
+        if self._init_pending:
+            self.initialiser.add_wheel(t_ns, v, omega)
+        self._wheel_in.chunks.append(
+            (np.asarray(t_ns, np.int64), np.asarray(v, np.float64), np.asarray(omega, np.float64))
+        )
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
+        if self._init_pending:
+            self.initialiser.add_ranges(t_ns, anchor, rng)
+        self._range_in.chunks.append(
+            (np.asarray(t_ns, np.int64), np.asarray(anchor, np.int64), np.asarray(rng, np.float64))
+        )
+
+    def step(self, t_ns: int) -> None:
+        """Process every buffered sample with stamp <= t_ns in time order; predict to t_ns."""
+        self._absorb_inputs()
+        if self._init_pending:
+            state = self.initialiser.try_initialise(int(t_ns))
+            if state is None:
+                return
+            self._init_pending = False
+            self._absorb_inputs()
+            self.t_init = int(state.t_ns)
+            self._discard_until(self.t_init)
+            self._start(state)
+            self.t_cur = self.t_init
+        assert self.t_cur is not None
+        t_ns = int(t_ns)
+        if t_ns <= self.t_cur:
+            return
+        rt, ra, rr, wt, wv = self._measurements(t_ns)
+        n_win = -(-(t_ns - self.t_cur) // MAX_WINDOW_NS)
+        edges = self.t_cur + (t_ns - self.t_cur) * np.arange(1, n_win + 1) // n_win
+        r_end = np.searchsorted(rt, edges, side="right")
+        w_end = np.searchsorted(wt, edges, side="right")
+        r0 = w0 = 0
+        for k in range(n_win):
+            t_b = int(edges[k])
+            r1, w1 = int(r_end[k]), int(w_end[k])
+            used = self._window(t_b, rt[r0:r1], ra[r0:r1], rr[r0:r1], wt[w0:w1], wv[w0:w1])
+            if r1 > r0:
+                self._count(ra[r0:r1], used)
+            self.t_cur = t_b
+            r0, w0 = r1, w1
+        self._trim_inputs()
+
+    def estimate(self) -> PoseEstimate | None:
+        """The causal pose (base in map) at the last step time, or None before the start."""
+        if self._init_pending or self.t_cur is None:
+            return None
+        pos, quat = self._pose()
+        return PoseEstimate(self.t_cur, pos, quat)
+
+    def finish(self) -> PoseStream | None:
+        """Filters have no smoothed output: the causal poses are final."""
+        return None
+
+    def report(self) -> dict[str, Any]:
+        """Ranges used/gated per anchor id, gate resets, mode, start time."""
+        ids = self.anchors.ids
+        return {
+            "mode": self.mode,
+            "initialised_at_ns": self.t_init,
+            "ranges_used": {ids[i]: n for i, n in sorted(self.used.items())},
+            "ranges_gated": {ids[i]: n for i, n in sorted(self.gated.items())},
+            "gate_resets": self.gate_resets,
+            "stale_samples": self.stale,
+        }
+
+    # -- to implement -------------------------------------------------------------------
+
+    @property
+    def mode(self) -> str:
+        """Sensor combination: 'imu+wheel', 'imu', 'wheel'."""
+        return "+".join(n for n, on in (("imu", self.has_imu), ("wheel", self.has_wheel)) if on)
+
+    def _start(self, state: InitialStateLike) -> None:
+        raise NotImplementedError
+
+    def _window(
+        self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
+        wt: np.ndarray, wv: np.ndarray,
+    ) -> np.ndarray:
+        """Advance from t_cur to t_b using the window's measurements.
+
+        Ranges: stamps rt (M,) ns in (t_cur, t_b], anchor indices ra, ranges rr m; wheel
+        speeds wv m/s at wt (IMU filters only). Returns the accepted mask of the ranges (M,).
+        """
+        raise NotImplementedError
+
+    def _inflate(self) -> None:
+        """Widen the position uncertainty after a run of gated ranges (lock-out recovery)."""
+        raise NotImplementedError
+
+    def _pose(self) -> tuple[F64, F64]:
+        raise NotImplementedError
+
+    # -- helpers for subclasses ---------------------------------------------------------
+
+    def imu_grid(
+        self, t_b: int, meas_t: np.ndarray
+    ) -> tuple[F64, F64, F64, np.ndarray]:
+        """Zero-order-hold IMU intervals from t_cur to t_b, split at the measurement stamps.
+
+        Returns gyro (N,3) rad/s and accel (N,3) m/s^2 (base frame) per interval, dt (N,) s,
+        and for each stamp of `meas_t` the index of the interval boundary (0..N) it falls
+        on. Consumes the IMU samples with stamps in (t_cur, t_b]; the last becomes the held
+        sample. Before the first sample the first available one is held backwards; with no
+        sample at all the rows are NaN (the caller substitutes a still sample).
+        """
+        assert self.t_cur is not None
+        i0 = self._imu_i
+        i1 = i0 + int(np.searchsorted(self._imu_t[i0:], t_b, side="right"))
+        ts = self._imu_t[i0:i1]
+        if self.held_w is None and i0 < len(self._imu_t):
+            self.held_w, self.held_f = self._imu_w[i0], self._imu_f[i0]
+        bounds = np.unique(np.concatenate([[self.t_cur], ts, meas_t, [t_b]]))
+        dt = np.diff(bounds).astype(np.float64) / NS_PER_S
+        j = np.searchsorted(ts, bounds[:-1], side="right") - 1
+        gyro = self._imu_w[i0 + np.maximum(j, 0)] if i1 > i0 else np.empty((len(dt), 3))
+        accel = self._imu_f[i0 + np.maximum(j, 0)] if i1 > i0 else np.empty((len(dt), 3))
+        before = j < 0
+        if np.any(before):
+            gyro[before] = np.nan if self.held_w is None else self.held_w
+            accel[before] = np.nan if self.held_f is None else self.held_f
+        if i1 > i0:
+            self.held_w, self.held_f = self._imu_w[i1 - 1], self._imu_f[i1 - 1]
+        self._imu_i = i1
+        return gyro, accel, dt, np.searchsorted(bounds, meas_t)
+
+    def wheel_grid(
+        self, t_b: int, meas_t: np.ndarray
+    ) -> tuple[F64, F64, F64, np.ndarray]:
+        """Wheel intervals from t_cur to t_b, split at the measurement stamps.
+
+        A wheel sample is the mean velocity over the interval ending at its stamp, so each
+        interval takes the first buffered sample stamped at or after its end, or the last
+        sample seen when none is buffered yet. Returns v (N,) m/s, omega (N,) rad/s,
+        dt (N,) s and the boundary index (0..N) of each stamp of `meas_t`.
+        """
+        assert self.t_cur is not None
+        i0 = self._wheel_i
+        ts = self._wheel_t[i0:]
+        i1 = i0 + int(np.searchsorted(ts, t_b, side="left"))  # consumed: stamps < t_b
+        k = int(np.searchsorted(ts, t_b, side="right"))
+        inner = ts[: i1 - i0]
+        bounds = np.unique(np.concatenate([[self.t_cur], inner, meas_t, [t_b]]))
+        dt = np.diff(bounds).astype(np.float64) / NS_PER_S
+        j = np.searchsorted(ts, bounds[1:], side="left")
+        have = j < len(ts)
+        jj = i0 + np.minimum(j, max(len(ts) - 1, 0))
+        if len(ts):
+            v = np.where(have, self._wheel_v[jj], self.held_v)
+            w = np.where(have, self._wheel_w[jj], self.held_omega)
+        else:
+            v = np.full(len(dt), self.held_v)
+            w = np.full(len(dt), self.held_omega)
+        if k > 0:
+            self.held_v = float(self._wheel_v[i0 + k - 1])
+            self.held_omega = float(self._wheel_w[i0 + k - 1])
+        self._wheel_i = i1
+        return v, w, dt, np.searchsorted(bounds, meas_t)
+
+    # -- internals ----------------------------------------------------------------------
+
+    def _count(self, anchors: np.ndarray, used: np.ndarray) -> None:
+        self.used.update(anchors[used].tolist())
+        gated = anchors[~used]
+        if len(gated):
+            self.gated.update(gated.tolist())
+        if np.any(used):
+            self.consecutive_gated = 0
+        else:
+            self.consecutive_gated += len(gated)
+        if self.consecutive_gated >= self.MAX_CONSECUTIVE_GATED:
+            self._inflate()
+            self.gate_resets += 1
+            self.consecutive_gated = 0
+
+    def _absorb_inputs(self) -> None:
+        imu = self._imu_in.take()
+        if imu is not None:
+            t, w, f = imu
+            self._imu_t = np.concatenate([self._imu_t[self._imu_i :], t])
+            self._imu_w = np.concatenate([self._imu_w[self._imu_i :], w])
+            self._imu_f = np.concatenate([self._imu_f[self._imu_i :], f])
+            self._imu_i = 0
+        wheel = self._wheel_in.take()
+        if wheel is not None:
+            t, v, w = wheel
+            self._wheel_t = np.concatenate([self._wheel_t[self._wheel_i :], t])
+            self._wheel_v = np.concatenate([self._wheel_v[self._wheel_i :], v])
+            self._wheel_w = np.concatenate([self._wheel_w[self._wheel_i :], w])
+            self._wheel_i = 0
+        # Measurement copies (the IMU filters use wheels as velocity updates); before the
+        # start they are carried over so that the events after the start time survive.
+        if self._init_pending:
+            if wheel is not None:
+                self._wheel_in_carry.append(wheel)
+            rng = self._range_in.take()
+            if rng is not None:
+                self._range_carry.append(rng)
+            return
+        if self._wheel_in_carry:
+            if wheel is not None:
+                self._wheel_in_carry.append(wheel)
+            wheel = _Pending(self._wheel_in_carry).take()
+            self._wheel_in_carry = []
+        rng = self._range_in.take()
+        if self._range_carry:
+            if rng is not None:
+                self._range_carry.append(rng)
+            rng = _Pending(self._range_carry).take()
+            self._range_carry = []
+        self._wheel_meas = wheel
+        self._ranges = rng
+
+    def _measurements(
+        self, t_ns: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Ranges (t, anchor, range) and, for IMU filters, wheel speeds (t_mid, v) in
+        (t_cur, t_ns], each sorted by time. Wheel speeds are placed at the middle of the
+        interval they average (not before t_cur)."""
+        assert self.t_cur is not None
+        empty_i = np.zeros(0, dtype=np.int64)
+        rt, ra, rr = empty_i, empty_i, np.zeros(0)
+        if self._ranges is not None:
+            t, a, r = self._ranges
+            keep = (t > self.t_cur) & (t <= t_ns)
+            self.stale += int(np.count_nonzero((t <= self.t_cur) & (t > (self.t_init or 0))))
+            rt, ra, rr = t[keep], a[keep], r[keep]
+            later = t > t_ns
+            if np.any(later):  # added ahead of this step: keep for the next one
+                self._range_in.chunks.insert(0, (t[later], a[later], r[later]))
+            if len(rt) > 1 and np.any(np.diff(rt) < 0):
+                o = np.argsort(rt, kind="stable")
+                rt, ra, rr = rt[o], ra[o], rr[o]
+        wt, wv = empty_i, np.zeros(0)
+        if self.has_imu and self._wheel_meas is not None and len(self._wheel_meas[0]):
+            t, v, w = self._wheel_meas
+            later = t > t_ns
+            if np.any(later):
+                self._wheel_in_carry.insert(0, (t[later], v[later], w[later]))
+                t, v = t[~later], v[~later]
+            first = t[0] if self._last_wheel_t is None else self._last_wheel_t
+            prev = np.concatenate([[first], t[:-1]])
+            self._last_wheel_t = int(t[-1])
+            mid = np.maximum(t - (t - prev) // 2, self.t_cur + 1)
+            keep = (t > self.t_cur) & (t <= t_ns)
+            wt, wv = mid[keep], v[keep]
+        self._ranges = None
+        self._wheel_meas = None
+        return rt, ra, rr, wt, wv
+
+    def _discard_until(self, t0: int) -> None:
+        """Drop process inputs up to the start time t0 (the last IMU sample is held)."""
+        i = int(np.searchsorted(self._imu_t, t0, side="right"))
+        if i > 0:
+            self.held_w, self.held_f = self._imu_w[i - 1], self._imu_f[i - 1]
+        self._imu_i = i
+        j = int(np.searchsorted(self._wheel_t, t0, side="right"))
+        if j > 0:
+            self.held_v, self.held_omega = float(self._wheel_v[j - 1]), float(self._wheel_w[j - 1])
+            self._last_wheel_t = int(self._wheel_t[j - 1])
+        self._wheel_i = j
+        # Ranges and wheel measurements at or before t0 are filtered by `_events`.
+        self.stale = 0
+
+    def _trim_inputs(self) -> None:
+        if self._imu_i > 4096:
+            self._imu_t = self._imu_t[self._imu_i :]
+            self._imu_w = self._imu_w[self._imu_i :]
+            self._imu_f = self._imu_f[self._imu_i :]
+            self._imu_i = 0
+        if self._wheel_i > 4096:
+            self._wheel_t = self._wheel_t[self._wheel_i :]
+            self._wheel_v = self._wheel_v[self._wheel_i :]
+            self._wheel_w = self._wheel_w[self._wheel_i :]
+            self._wheel_i = 0
