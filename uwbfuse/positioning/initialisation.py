@@ -166,7 +166,7 @@ class Initialiser:
         anchors: AnchorMap | None,
         streams: frozenset[str],
         *,
-        estimate_range_bias: bool = False,
+        estimate_range_bias: bool = True,
     ) -> None:
         self.config = config
         self.anchors = anchors
@@ -185,6 +185,7 @@ class Initialiser:
         self._cache: dict[str, tuple[np.ndarray, ...]] = {}
         self._last_attempt_ns: int | None = None
         self._f_level = np.array([0.0, 0.0, config.imu.gravity])  # mean f used to level
+        self._still_s = 0.0
         self.attempts = 0
         self.last_reason = "no data"
 
@@ -304,6 +305,7 @@ class Initialiser:
         still_s = n_still * _BLOCK_S
         ended = len(moving) > 0
         still_ok = still_s >= cfg.standstill_window
+        self._still_s = still_s
         if not still_ok and not ended:
             self.last_reason = "waiting for a standstill window or motion"
             return None
@@ -451,7 +453,10 @@ class Initialiser:
             d1, _, _ = self._imu_strapdown(imu, gyro_bias, ba, rl, t_start_s, tq, rot1)
             cols.append((d1 - d0) / h_a)
             sigmas.append(icfg.accel_bias_sigma)
-        bg_sigma = 0.002 if still_ok else icfg.gyro_bias_sigma
+        # Gyro bias left after the standstill mean (3 sigma of its noise plus drift).
+        bg_sigma = (3.0 * icfg.gyro_noise_density / math.sqrt(max(self._still_s, 1e-3))
+                    + icfg.gyro_bias_random_walk * math.sqrt(self.config.init.max_window)
+                    ) if still_ok else icfg.gyro_bias_sigma
         for k in range(3):
             e = np.zeros(3)
             e[k] = 1.0
@@ -518,14 +523,17 @@ class Initialiser:
         if motion_start is not None and v0_known:
             prior = self._static_fix(rng, t_first, motion_start)
         solve_v = trk.free_velocity
-        use_b = self.estimate_range_bias
+        # Per-anchor range biases (slow NLOS, antenna delay) over the window.
+        anc_ids, anc_col = np.unique(ar, return_inverse=True)
+        n_b = len(anc_ids) if self.estimate_range_bias else 0
+        b_sigma = self.config.wls.nlos_std
         n_s = len(trk.sens_sigma)
         i_v = 4
         i_s = i_v + 3 * solve_v
         i_b = i_s + n_s
-        n_unk = i_b + use_b
+        n_unk = i_b + n_b
         n_r = len(rr)
-        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + use_b
+        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b
 
         def fun_jac(x: F64) -> tuple[F64, F64]:
             p0, yaw0 = x[:3], x[3]
@@ -539,7 +547,7 @@ class Initialiser:
             diff = tag - anc
             dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-6)
             u = diff / dist[:, None]
-            b = x[i_b] if use_b else 0.0
+            b = x[i_b:][anc_col] if n_b else 0.0
             f = np.empty(n_r + n_prior)
             jac = np.zeros((n_r + n_prior, n_unk))
             f[:n_r] = (dist + b - rr) / sig
@@ -549,8 +557,8 @@ class Initialiser:
                 jac[:n_r, i_v:i_v + 3] = u * dtr[:, None] / sig
             if n_s:
                 jac[:n_r, i_s:i_b] = np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
-            if use_b:
-                jac[:n_r, i_b] = 1.0 / sig
+            if n_b:
+                jac[np.arange(n_r), i_b + anc_col] = 1.0 / sig
             row = n_r
             if prior is not None:
                 sp = max(prior[1], 0.02)
@@ -566,10 +574,9 @@ class Initialiser:
                 f[row:row + n_s] = x[i_s:i_b] / trk.sens_sigma
                 jac[row:row + n_s, i_s:i_b] = np.diag(1.0 / trk.sens_sigma)
                 row += n_s
-            if use_b:
-                rb = self.config.graph.range_bias_sigma
-                f[row] = x[i_b] / rb
-                jac[row, i_b] = 1.0 / rb
+            if n_b:
+                f[row:row + n_b] = x[i_b:] / b_sigma
+                jac[row:row + n_b, i_b:] = np.eye(n_b) / b_sigma
             return f, jac
 
         cache: dict[bytes, tuple[F64, F64]] = {}
