@@ -1,0 +1,291 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""`ukf`: the unscented Kalman filter of the odometer/IMU/LiDAR/UWB AGV paper, same inputs.
+
+The paper ("AGV indoor navigation ... multi-sensor fusion of odometer, IMU, LiDAR and UWB",
+HSET vol. 7, AIEA 2022, sec. 4.1) runs the scaled unscented transform (eq. 11-13: 2n+1
+sigma points around the mean, spread sqrt((n + lambda) P)), propagates every sigma point
+through the process (eq. 14-16, additive Q), redraws them (eq. 17), predicts the
+measurements per sigma point (eq. 18-21) and updates with K = Pxz Pzz^-1 (eq. 22-24).
+Weights are the standard scaled (Merwe) ones from `[ukf] alpha, beta, kappa`:
+lambda = alpha^2 (n + kappa) - n, Wm0 = lambda / (n + lambda),
+Wc0 = Wm0 + 1 - alpha^2 + beta, Wi = 1 / (2 (n + lambda)).
+
+Adapted to the inputs the graph and the EKF see (the paper's constant-acceleration point
+mass with UWB position fixes and no LiDAR here):
+
+- With an IMU: the state is the EKF's navigation state (position, velocity, attitude, gyro
+  and accelerometer biases); sigma points are drawn in the 15-D error state around it
+  (attitude as a rotation vector, R_i = Exp(dtheta_i) R) and each one is mechanised through
+  the IMU samples, all sigma points at once (`models.mechanise` is batched).
+- Without an IMU: the paper's odometer model (eq. 3, planar unicycle x, y, yaw) driven by
+  the wheels.
+- UWB ranges are scalar measurements (tag lever arm included) with the EKF's chi-square
+  gate per range; wheel speeds are base-frame velocity measurements (forward v, zero
+  lateral/vertical speed); soft planar roll/pitch constraint with wheels, as in the EKF.
+
+Windows: as in the EKF, the time since the last step is cut into windows of at most 0.1 s.
+One sigma-point set is drawn at the window start and propagated through the window; every
+measurement of the window is predicted on each sigma point's trajectory at its own stamp,
+and the update corrects the state at the window end through the sigma points' cross
+covariance (a UKF over the window; the process noise of the window, added to the end
+covariance, is not seen by the window's own measurements).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from uwbfuse.config import Config
+from uwbfuse.errors import EstimatorError
+from uwbfuse.estimator import Estimator, Method
+from uwbfuse.filters.base import InitialiserLike
+from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
+from uwbfuse.filters.models import (
+    BA,
+    BG,
+    F64,
+    N_ERR,
+    P_,
+    TH,
+    V_,
+    mechanise,
+    so3_exp,
+    so3_log,
+    unicycle_track,
+    unicycle_transition,
+)
+from uwbfuse.streams import AnchorMap
+
+
+class MerweWeights:
+    """Scaled unscented transform for dimension n: spread and weights (Wm, Wc)."""
+
+    def __init__(self, n: int, alpha: float, beta: float, kappa: float) -> None:
+        lam = alpha * alpha * (n + kappa) - n
+        if n + lam <= 0:
+            raise EstimatorError(
+                f"ukf: alpha^2 (n + kappa) must be positive (n={n}, alpha={alpha}, kappa={kappa})"
+            )
+        self.n = n
+        self.scale = math.sqrt(n + lam)
+        self.wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        self.wc = self.wm.copy()
+        self.wm[0] = lam / (n + lam)
+        self.wc[0] = lam / (n + lam) + 1.0 - alpha * alpha + beta
+
+    def offsets(self, p: F64) -> F64:
+        """Sigma-point offsets (2n+1, n): 0, +columns and -columns of sqrt((n + lambda) P)."""
+        try:
+            l_ = np.linalg.cholesky(p)
+        except np.linalg.LinAlgError:
+            w, v = np.linalg.eigh(0.5 * (p + p.T))
+            l_ = v * np.sqrt(np.maximum(w, 1e-12))
+        cols = self.scale * l_.T
+        return np.concatenate([np.zeros((1, self.n)), cols, -cols])
+
+
+def _unscented_update(
+    wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
+    gate_rows: int, gate: float | None,
+) -> tuple[F64, F64, F64, np.ndarray]:
+    """Update from sigma-point states and predicted measurements.
+
+    ex (2n+1, n): sigma-point state deviations from the central point; zs (2n+1, m):
+    predicted measurements; z (m,) measured; r (m,) variances; p_prior (n,n) the
+    predicted covariance (already with Q). The first `gate_rows` rows are gated one by one
+    with y^2 / Pzz_ii against `gate`. Returns the correction of the central point (n,), the
+    posterior covariance P - K Pzz K^T, the innovation y and the accepted-row mask.
+    """
+    ex_mean = wts.wm @ ex
+    dz0 = zs - zs[0]
+    z_mean = zs[0] + wts.wm @ dz0
+    dx = ex - ex_mean
+    dz = zs - z_mean
+    pzz = (dz.T * wts.wc) @ dz
+    pzz[np.diag_indices_from(pzz)] += r
+    y = z - z_mean
+    keep = np.ones(len(z), dtype=bool)
+    if gate is not None and gate_rows:
+        g = y[:gate_rows] ** 2 <= gate * np.diag(pzz)[:gate_rows]
+        keep[:gate_rows] = g
+    if not np.any(keep):
+        return ex_mean, p_prior, y, keep
+    pzz = pzz[np.ix_(keep, keep)]
+    pxz = (dx.T * wts.wc) @ dz[:, keep]
+    k = np.linalg.solve(pzz, pxz.T).T
+    p_new = p_prior - k @ pzz @ k.T
+    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep
+
+
+class ErrorStateUkf(ErrorStateEkf):
+    """UKF on the IMU-driven navigation state (modes 'imu+wheel' and 'imu').
+
+    Shares the EKF's state layout, start, injection and outputs; `_window` replaces the
+    linearisation by sigma points.
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        anchors: AnchorMap,
+        streams: frozenset[str],
+        initialiser: InitialiserLike | None = None,
+    ) -> None:
+        super().__init__(config, anchors, streams, initialiser)
+        u = config.ukf
+        self.weights = MerweWeights(N_ERR, u.alpha, u.beta, u.kappa)
+
+    def _window(
+        self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
+        wt: np.ndarray, wv: np.ndarray,
+    ) -> np.ndarray:
+        """Draw sigma points, mechanise them to t_b, update with the window's measurements."""
+        nr, nw = len(rt), len(wt)
+        gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
+        nan = np.isnan(gyro[:, 0])
+        if np.any(nan):
+            gyro[nan] = self.bg
+            accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
+        off = self.weights.offsets(self.P)                      # (S,15)
+        r0 = so3_exp(off[:, TH]) @ self.R
+        rs, vs, ps, _ = mechanise(
+            r0, self.v + off[:, V_], self.p + off[:, P_], self.bg + off[:, BG],
+            self.ba + off[:, BA], gyro, accel, dt, self.gravity,
+        )
+        t = float(dt.sum())
+        # End-state deviations from the central sigma point (error-state coordinates).
+        ex = np.empty_like(off)
+        ex[:, P_] = ps[:, -1] - ps[0, -1]
+        ex[:, V_] = vs[:, -1] - vs[0, -1]
+        ex[:, TH] = so3_log(rs[:, -1] @ rs[0, -1].T)
+        ex[:, BG] = off[:, BG]
+        ex[:, BA] = off[:, BA]
+        wts = self.weights
+        ex_mean = wts.wm @ ex
+        dxx = ex - ex_mean
+        p_prior = (dxx.T * wts.wc) @ dxx + self._q(t)
+        zs: list[F64] = []
+        zm: list[F64] = []
+        rv: list[F64] = []
+        if nr:
+            k = kidx[:nr]
+            d = ps[:, k] + rs[:, k] @ self.tag_b - self.anchor_pos[ra]
+            zs.append(np.sqrt(np.einsum("smi,smi->sm", d, d)))
+            zm.append(rr)
+            rv.append(np.full(nr, self.sigma_r2))
+        if nw:
+            k = kidx[nr:]
+            vb = np.einsum("smji,smj->smi", rs[:, k], vs[:, k])   # R^T v per point and stamp
+            zs.append(vb.reshape(len(off), 3 * nw))
+            z = np.zeros((nw, 3))
+            z[:, 0] = wv
+            zm.append(z.reshape(-1))
+            rv.append(np.tile(self.r_wheel_diag, nw))
+        if self.planar:
+            zs.append(r0[:, :2, 2])
+            zm.append(np.zeros(2))
+            rv.append(np.full(2, self.sigma_tilt2))
+        used = np.ones(nr, dtype=bool)
+        corr = ex_mean
+        if zs:
+            corr, p_prior, self.y, keep = _unscented_update(
+                wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
+                p_prior, nr, self.gate1 if self.gating else None,
+            )
+            used = keep[:nr]
+        self.P = p_prior
+        self.R, self.v, self.p = rs[0, -1], vs[0, -1], ps[0, -1]
+        self._inject(corr)
+        return used
+
+    def _q(self, t: float) -> F64:
+        """Discrete process noise over t s: white accel/gyro noise and bias random walks.
+
+        Velocity random walk qa t with its integrated position part (qa t^3/3, qa t^2/2);
+        attitude qg t; biases qbg t, qba t. The cross terms through the attitude (gyro
+        noise into velocity) are third order in t and dropped.
+        """
+        q = np.diag(self.q_diag * t)
+        qa = self.q_diag[3]
+        q[P_, P_] += np.eye(3) * qa * t**3 / 3.0
+        q[P_, V_] += np.eye(3) * qa * t * t / 2.0
+        q[V_, P_] += np.eye(3) * qa * t * t / 2.0
+        return q
+
+
+class UnicycleUkf(UnicycleEkf):
+    """UKF on the planar unicycle (x, y, yaw) driven by wheel odometry: the paper's eq. 3."""
+
+    def __init__(
+        self,
+        config: Config,
+        anchors: AnchorMap,
+        streams: frozenset[str],
+        initialiser: InitialiserLike | None = None,
+    ) -> None:
+        super().__init__(config, anchors, streams, initialiser)
+        u = config.ukf
+        self.weights = MerweWeights(3, u.alpha, u.beta, u.kappa)
+
+    def _window(
+        self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
+        wt: np.ndarray, wv: np.ndarray,
+    ) -> np.ndarray:
+        """Propagate the 7 sigma points along the wheels to t_b; update with the ranges."""
+        nr = len(rt)
+        v, w, dt, k = self.wheel_grid(t_b, rt)
+        off = self.weights.offsets(self.P)
+        pts = self.x + off
+        xb, yb, yawb, mid = unicycle_track(pts[:, 0], pts[:, 1], pts[:, 2], v, w, dt)
+        _, q = unicycle_transition(
+            np.diff(xb[0]), np.diff(yb[0]), v, dt, mid[0], self.sigma_v, self.sigma_w
+        )
+        ex = np.stack([xb[:, -1] - xb[0, -1], yb[:, -1] - yb[0, -1],
+                       yawb[:, -1] - yawb[0, -1]], axis=1)
+        wts = self.weights
+        ex_mean = wts.wm @ ex
+        dxx = ex - ex_mean
+        p_prior = (dxx.T * wts.wc) @ dxx + q
+        used = np.ones(nr, dtype=bool)
+        corr = ex_mean
+        if nr:
+            tx, ty, tz = self.tag_b
+            cy, sy = np.cos(yawb[:, k]), np.sin(yawb[:, k])
+            a = self.anchor_pos[ra]
+            dx_ = xb[:, k] + cy * tx - sy * ty - a[:, 0]
+            dy_ = yb[:, k] + sy * tx + cy * ty - a[:, 1]
+            dz_ = self.z0 + tz - a[:, 2]
+            zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
+            corr, p_prior, y, used = _unscented_update(
+                wts, ex, zs, rr, np.full(nr, self.sigma_r2), p_prior, nr,
+                self.gate1 if self.gating else None,
+            )
+            self.y = y
+        self.P = p_prior
+        self.x = np.array([xb[0, -1], yb[0, -1], yawb[0, -1]]) + corr
+        return used
+
+
+def make_filter(
+    config: Config,
+    anchors: AnchorMap | None,
+    streams: frozenset[str],
+    initialiser: InitialiserLike | None = None,
+) -> ErrorStateUkf | UnicycleUkf:
+    """The UKF variant for the sensor combination: IMU-driven when there is an IMU."""
+    if anchors is None or len(anchors) == 0:
+        raise EstimatorError("ukf needs an anchor map")
+    if "imu" in streams:
+        return ErrorStateUkf(config, anchors, streams, initialiser)
+    return UnicycleUkf(config, anchors, streams, initialiser)
+
+
+def make(
+    method: Method, config: Config, anchors: AnchorMap | None, streams: frozenset[str]
+) -> Estimator:
+    """Factory of the method registry (`uwbfuse.methods`)."""
+    if method is not Method.UKF:
+        raise EstimatorError(f"uwbfuse.filters.ukf cannot build method {method.value}")
+    return make_filter(config, anchors, streams)
