@@ -139,6 +139,9 @@ class InitConfig(_Section):
         3.0, gt=0,
         description="UWB only: seconds of fixes after which a still tag starts, heading unknown",
     )
+    base_height: float = Field(
+        0.0, description="wheeled logs: expected z of the base origin (the floor), m; weak prior"
+    )
 
 
 class GraphConfig(_Section):
@@ -154,7 +157,12 @@ class GraphConfig(_Section):
     estimate_range_bias: bool = Field(
         True, description="estimate a constant per-anchor range bias"
     )
-    range_bias_sigma: float = Field(0.3, gt=0, description="prior std of range biases, m")
+    range_bias_sigma: float = Field(
+        0.3, gt=0, description="prior std of the range bias common to all anchors, m"
+    )
+    range_bias_anchor_sigma: float = Field(
+        0.05, gt=0, description="prior std of each anchor's range bias around the common one, m"
+    )
     estimate_range_scale: bool = Field(
         False, description="also estimate a per-anchor range scale factor"
     )
@@ -163,13 +171,22 @@ class GraphConfig(_Section):
     )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
     nlos_mean: float = Field(
-        0.3, gt=0, description="initial mean of the NLOS range excess, metres (EM-adapted)"
+        0.3, gt=0, description="mean NLOS range excess over the anchor's LOS offset, metres"
+    )
+    nlos_slow_sigma: float = Field(
+        0.13, gt=0, description="std of the slowly varying NLOS excess of an anchor, metres"
     )
     nlos_sigma: float = Field(
-        0.15, gt=0, description="initial std of the NLOS range excess, metres (EM-adapted)"
+        0.07, gt=0, description="std of the fast (per-range) part of the NLOS excess, metres"
+    )
+    nlos_tau: float = Field(
+        5.0, gt=0, description="correlation time of an anchor's NLOS excess, seconds"
+    )
+    nlos_segment: float = Field(
+        1.0, gt=0, description="time step of the per-anchor NLOS excess states, seconds"
     )
     nlos_rate: float = Field(
-        0.3, gt=0, lt=1, description="initial fraction of NLOS ranges (EM-adapted)"
+        0.3, gt=0, lt=1, description="prior fraction of NLOS ranges (EM-adapted)"
     )
     nlos_switch: float = Field(
         0.05, gt=0, lt=1, description="probability that an anchor's LOS/NLOS state changes "

@@ -41,6 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config
 from uwbfuse.positioning.multilateration import (
+    default_tag_z,
     epochs_by_window,
     group_epochs,
     multilaterate,
@@ -57,6 +58,8 @@ _N_SEEDS = 8
 _IMU_WINDOW_S = 8.0  # longest window of an IMU-only (strapdown) track, s
 _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
 _V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
+_Z_SIGMA_PLANAR = 0.5  # prior std of a wheeled base's height about init.base_height, m
+_Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_z, m
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 
 
@@ -125,18 +128,26 @@ def integrate_gyro(r0: F64, t_s: F64, gyro_base: F64) -> F64:
 def _block_still(
     t: F64, x: F64, block_end: F64, thr_norm: float | None, thr_std: float | None
 ) -> NDArray[np.bool_]:
-    """Per block (ending at block_end, length _BLOCK_S): max norm < thr and std < thr."""
+    """Per block (ending at block_end, length _BLOCK_S): max norm < thr and std < thr.
+
+    Vectorised with cumulative sums; empty blocks count as still.
+    """
     idx = np.searchsorted(t, block_end, side="right")
     start = np.concatenate([[0], idx[:-1]])
+    cnt = idx - start
     still = np.ones(len(block_end), dtype=bool)
-    for i, (a, b) in enumerate(zip(start, idx, strict=True)):
-        seg = x[a:b]
-        if b - a == 0:
-            continue
-        if thr_norm is not None and np.max(np.linalg.norm(seg, axis=1)) >= thr_norm:
-            still[i] = False
-        if thr_std is not None and b - a > 1 and np.linalg.norm(np.std(seg, axis=0)) >= thr_std:
-            still[i] = False
+    if thr_norm is not None:
+        big = (np.linalg.norm(x, axis=1) >= thr_norm).astype(np.int64)
+        cb = np.concatenate([[0], np.cumsum(big)])
+        still &= (cb[idx] - cb[start]) == 0
+    if thr_std is not None:
+        c1 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x, axis=0)])
+        c2 = np.vstack([np.zeros((1, x.shape[1])), np.cumsum(x * x, axis=0)])
+        n = np.maximum(cnt, 1)[:, None]
+        mean = (c1[idx] - c1[start]) / n
+        var = np.maximum((c2[idx] - c2[start]) / n - mean**2, 0.0)
+        std = np.sqrt(np.sum(var, axis=1))
+        still &= (cnt < 2) | (std < thr_std)
     return still
 
 
@@ -244,15 +255,36 @@ class Initialiser:
             return None
         if not self.has_imu and not self.has_wheel:
             return self._uwb_only(t_ns, rng)
-        if still_ok and still_end_ns is None:
+        at_rest = still_ok
+        if still_ok and not self.has_wheel:
+            # Constant velocity looks still to an IMU: the UWB track decides.
+            t_first = int(min(imu[0][0], rng[0][0]))
+            at_rest = not self._uwb_moving(rng, t_first, still_end_ns or t_ns)
+        if at_rest and still_end_ns is None:
             self.last_reason = "standing still"
             return None
         if self._last_attempt_ns is not None and t_ns - self._last_attempt_ns < _RETRY_S * NS_PER_S:
             return None
-        motion_start = still_end_ns if still_ok and still_end_ns is not None else None
+        motion_start = still_end_ns if at_rest and still_end_ns is not None else None
         return self._solve_heading(
-            t_ns, imu, wheel, rng, r_level, gyro_bias, accel_bias, still_ok, motion_start
+            t_ns, imu, wheel, rng, r_level, gyro_bias, accel_bias, still_ok, motion_start,
+            at_rest,
         )
+
+    def _uwb_moving(self, rng: tuple, t_from: int, t_to: int) -> bool:
+        """True when the UWB fixes in [t_from, t_to] show a speed above `min_motion`."""
+        tf, pf, okf = self._fixes(rng, t_from)
+        sel = okf & (tf <= t_to / NS_PER_S)
+        tf, pf = tf[sel], pf[sel]
+        if len(tf) < 10 or tf[-1] - tf[0] < 1.0:
+            return False
+        a_mat = np.column_stack([np.ones_like(tf), tf - tf[0]])
+        coef, *_ = np.linalg.lstsq(a_mat, pf[:, :2], rcond=None)
+        res = pf[:, :2] - a_mat @ coef
+        s2 = float(np.sum(res**2) / max(2 * len(tf) - 4, 1))
+        sv = math.sqrt(s2 * np.linalg.inv(a_mat.T @ a_mat)[1, 1])
+        speed = float(np.linalg.norm(coef[1]))
+        return speed > self.config.init.min_motion and speed > 4.0 * sv
 
     @staticmethod
     def _upto(cols: tuple[np.ndarray, ...], t_ns: int) -> tuple[np.ndarray, ...]:
@@ -335,6 +367,15 @@ class Initialiser:
     def _range_sigma(self) -> float:
         return float(self.config.uwb.sigma)
 
+    def _fix_dim(self) -> tuple[int, float]:
+        """Fix dimension and tag height: 2-D for wheeled logs or < 4 anchors, else 3-D."""
+        assert self.anchors is not None
+        if self.planar:
+            return 2, self.config.init.base_height + float(self.lever[2])
+        if len(self.anchors) < 4:
+            return 2, default_tag_z(self.anchors.positions)
+        return 3, default_tag_z(self.anchors.positions)
+
     def _fixes(self, rng: tuple, t_from: int | None = None) -> tuple[F64, F64, F64]:
         """Per-epoch 3-D fixes (tag) over the range data: (t_s (K,), pos (K,3), ok (K,))."""
         assert self.anchors is not None
@@ -347,8 +388,9 @@ class Initialiser:
         if not len(ep):
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=bool)
         grid, _ = group_epochs(t, a, r, len(self.anchors), ep, window_ns)
+        dim, tag_z = self._fix_dim()
         fx = multilaterate(
-            self.anchors.positions, grid, dim=3, sigma=self._range_sigma(),
+            self.anchors.positions, grid, dim=dim, tag_z=tag_z, sigma=self._range_sigma(),
             kernel=self.config.uwb.robust_kernel, threshold=self.config.uwb.kernel_threshold,
         )
         return ep.astype(np.float64) / NS_PER_S, fx.position, fx.ok
@@ -366,7 +408,8 @@ class Initialiser:
         for k in np.flatnonzero(cnt):
             med[k] = np.median(r[sel][a[sel] == k])
         sig = self._range_sigma() / np.sqrt(np.maximum(cnt, 1))
-        fx = multilaterate(self.anchors.positions, med[None, :], dim=3,
+        dim, tag_z = self._fix_dim()
+        fx = multilaterate(self.anchors.positions, med[None, :], dim=dim, tag_z=tag_z,
                            sigma=np.where(cnt > 0, sig, 1.0)[None, :])
         if not fx.ok[0]:
             return None
@@ -481,6 +524,7 @@ class Initialiser:
     def _solve_heading(
         self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple, r_level: F64,
         gyro_bias: F64, accel_bias: F64, still_ok: bool, motion_start: int | None,
+        at_rest: bool = True,
     ) -> InitialState | None:
         assert self.anchors is not None
         cfg = self.config.init
@@ -533,7 +577,13 @@ class Initialiser:
         i_b = i_s + n_s
         n_unk = i_b + n_b
         n_r = len(rr)
-        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b
+        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b + 1
+        # Weak prior on the start height: the floor for wheeled logs, else below the anchors.
+        if self.planar:
+            z_prior, z_sigma = self.config.init.base_height, _Z_SIGMA_PLANAR
+        else:
+            z_prior = default_tag_z(self.anchors.positions) - float(self.lever[2])
+            z_sigma = _Z_SIGMA_FREE
 
         def fun_jac(x: F64) -> tuple[F64, F64]:
             p0, yaw0 = x[:3], x[3]
@@ -577,6 +627,9 @@ class Initialiser:
             if n_b:
                 f[row:row + n_b] = x[i_b:] / b_sigma
                 jac[row:row + n_b, i_b:] = np.eye(n_b) / b_sigma
+                row += n_b
+            f[row] = (x[2] - z_prior) / z_sigma
+            jac[row, 2] = 1.0 / z_sigma
             return f, jac
 
         cache: dict[bytes, tuple[F64, F64]] = {}
@@ -677,7 +730,7 @@ class Initialiser:
         return InitialState(
             t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
             gyro_bias=bg, accel_bias=ba, position_sigma=pos_sigma, yaw_sigma=yaw_sigma,
-            still=still_ok,
+            still=still_ok and at_rest,
         )
 
     # ------------------------------------------------------------------ UWB only

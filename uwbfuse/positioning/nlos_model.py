@@ -1,0 +1,264 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""NLOS range-error model, NLOS-weighted least squares and its calibration (Qiu et al. 2022).
+
+Range error e = measured - true range (m). LOS: e ~ N(0, los_std^2). NLOS: e ~ N(nlos_mean,
+nlos_std^2), with prior probability nlos_prior per range (per anchor when calibrated).
+
+- `nlos_probability`: posterior NLOS probability of a range from its residual against a
+  position estimate (Bayes with the two fitted distributions).
+- `weighted_fix`: Qiu eq. 10-11 per epoch: weights beta_i = 1 / E[var_i] with the NLOS
+  probability of each range, the expected NLOS excess subtracted, iterated (EM-like) from a
+  robust start, then refined by Gauss-Newton with the same weights.
+- `calibrate_nlos`: Qiu eq. 8-9: per anchor, the histogram of range errors (against ground
+  truth) is fitted by scaled normal curves f(x) = A / (sqrt(2 pi) sigma) exp(-(x - mean)^2 /
+  (2 sigma^2)) by quasi-Newton (L-BFGS-B) least squares on the bin frequencies; a LOS and an
+  NLOS component per anchor give los_std, nlos_mean, nlos_std and nlos_prior = A_nlos /
+  (A_los + A_nlos).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
+
+from uwbfuse.config import Config, RobustKernel, WlsConfig
+from uwbfuse.errors import EstimatorError
+from uwbfuse.positioning.multilateration import Fixes, gauss_newton, linear_ls, multilaterate
+from uwbfuse.streams import AnchorMap, SensorLog
+
+F64 = NDArray[np.float64]
+
+_MIN_LOS_STD = 0.005  # floor on the LOS std used for probabilities, m
+
+
+@dataclass(frozen=True)
+class NlosParams:
+    """One error model: los_std, nlos_mean, nlos_std (m) and nlos_prior (0..1)."""
+
+    los_std: float
+    nlos_mean: float
+    nlos_std: float
+    nlos_prior: float
+
+    def as_list(self) -> list[float]:
+        return [self.los_std, self.nlos_mean, self.nlos_std, self.nlos_prior]
+
+
+@dataclass(frozen=True)
+class NlosModel:
+    """Global NLOS model plus per-anchor overrides (anchor id -> NlosParams)."""
+
+    default: NlosParams
+    per_anchor: dict[str, NlosParams] = field(default_factory=dict)
+    samples: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, wls: WlsConfig) -> NlosModel:
+        """The model in `[wls]` (global values and `anchor_nlos`)."""
+        default = NlosParams(wls.los_std, wls.nlos_mean, wls.nlos_std, wls.nlos_prior)
+        per = {k: NlosParams(*map(float, v)) for k, v in wls.anchor_nlos.items()}
+        return cls(default, per)
+
+    def arrays(self, anchors: AnchorMap) -> tuple[F64, F64, F64, F64]:
+        """(los_std, nlos_mean, nlos_std, nlos_prior), each (M,) in anchor-map order."""
+        rows = [self.per_anchor.get(a, self.default).as_list() for a in anchors.ids]
+        arr = np.array(rows, dtype=np.float64).reshape(-1, 4)
+        return arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3]
+
+    def to_toml(self) -> dict[str, Any]:
+        """TOML-ready `[wls]` values: global los_std/nlos_mean/nlos_std/nlos_prior and
+        `anchor_nlos` = {id: [los_std, nlos_mean, nlos_std, nlos_prior]}."""
+        d = self.default
+        return {
+            "los_std": round(d.los_std, 4),
+            "nlos_mean": round(d.nlos_mean, 4),
+            "nlos_std": round(d.nlos_std, 4),
+            "nlos_prior": round(d.nlos_prior, 4),
+            "anchor_nlos": {k: [round(x, 4) for x in p.as_list()]
+                            for k, p in self.per_anchor.items()},
+        }
+
+
+def _normal_pdf(x: F64, mean: F64 | float, std: F64 | float) -> F64:
+    return np.exp(-0.5 * ((x - mean) / std) ** 2) / (math.sqrt(2 * math.pi) * std)
+
+
+def nlos_probability(
+    residual: F64, los_std: F64, nlos_mean: F64, nlos_std: F64, prior: F64,
+    extra_var: F64 | float = 0.0,
+) -> F64:
+    """Posterior NLOS probability of ranges from residuals e = measured - predicted (m).
+
+    residual (N,M); model arrays (M,); extra_var: position-induced variance added to both
+    components (m^2). NaN residuals give the prior.
+    """
+    los = np.sqrt(np.maximum(los_std, _MIN_LOS_STD) ** 2 + extra_var)
+    nl = np.sqrt(nlos_std**2 + extra_var)
+    pn = prior * _normal_pdf(residual, nlos_mean, nl)
+    pl = (1.0 - prior) * _normal_pdf(residual, 0.0, los)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p = pn / (pn + pl)
+    p = np.where(np.isfinite(p), p, np.where(residual > nlos_mean, 1.0, 0.0))
+    return np.where(np.isfinite(residual), p, np.broadcast_to(prior, residual.shape))
+
+
+@dataclass(frozen=True)
+class WeightedFixes:
+    """`weighted_fix` output: the fixes and each range's final NLOS probability (N,M)."""
+
+    fixes: Fixes
+    nlos_prob: F64
+
+
+def weighted_fix(
+    anchors: AnchorMap,
+    rng: F64,
+    model: NlosModel,
+    *,
+    dim: int = 3,
+    tag_z: F64 | float | None = None,
+    nearest: int | None = None,
+    iterations: int = 3,
+) -> WeightedFixes:
+    """NLOS-weighted fixes (Qiu eq. 10-11) for N epochs of ranges rng (N,M) (m, NaN missing).
+
+    Start: Huber Gauss-Newton with each anchor's mixture std. Then repeat: residuals ->
+    NLOS probabilities p -> weights 1 / ((1-p) los^2 + p nlos^2) and ranges corrected by the
+    expected excess p * nlos_mean -> weighted linear LS (eq. 10) -> weighted Gauss-Newton.
+    """
+    pos_a = anchors.positions
+    rng = np.atleast_2d(np.asarray(rng, dtype=np.float64)).copy()
+    if nearest is not None:
+        from uwbfuse.positioning.multilateration import select_nearest
+
+        rng[~select_nearest(rng, nearest)] = np.nan
+    los, nmean, nstd, prior = model.arrays(anchors)
+    mix_var = (1 - prior) * los**2 + prior * (nstd**2 + nmean**2) - (prior * nmean) ** 2
+    sig0 = np.sqrt(np.maximum(mix_var, _MIN_LOS_STD**2))
+    # Start from the prior: expected excess removed, mixture std as weights.
+    start = rng - prior * nmean
+    fx = multilaterate(pos_a, start, dim=dim, tag_z=tag_z, sigma=sig0[None, :],
+                       kernel=RobustKernel.HUBER, threshold=1.345)
+    p = np.broadcast_to(prior, rng.shape).copy()
+    n = len(rng)
+    for _ in range(iterations):
+        pos = np.where(np.isfinite(fx.position), fx.position, 0.0)
+        pred = np.linalg.norm(pos[:, None, :] - pos_a[None, :, :], axis=2)
+        res = rng - pred
+        pos_var = np.nan_to_num(np.trace(fx.cov, axis1=1, axis2=2), nan=1.0)
+        p = nlos_probability(res, los, nmean, nstd, prior, extra_var=pos_var[:, None] / dim)
+        p = np.where(fx.ok[:, None], p, prior)
+        var = (1 - p) * np.maximum(los, _MIN_LOS_STD) ** 2 + p * nstd**2
+        corrected = rng - p * nmean
+        sigma = np.sqrt(var)
+        w = 1.0 / var
+        if dim == 2:
+            assert tag_z is not None
+            z = np.broadcast_to(np.asarray(tag_z, dtype=np.float64), (n,))
+            from uwbfuse.positioning.multilateration import project_ranges
+
+            xy, _ = linear_ls(pos_a[:, :2], project_ranges(corrected, pos_a[:, 2], z), w)
+            x0 = np.column_stack([xy, z])
+        else:
+            x0 = pos
+        x0 = np.where(np.isfinite(x0), x0, pos)
+        fx = gauss_newton(pos_a, corrected, x0, sigma, dim=dim, kernel=RobustKernel.HUBER,
+                          threshold=2.5, iterations=10)
+    return WeightedFixes(fx, p)
+
+
+# ---------------------------------------------------------------------- calibration
+def _fit_histogram(errors: F64, bins: int, los_guess: NlosParams) -> NlosParams:
+    """Qiu eq. 8-9: fit A_l N(0-ish, s_l) + A_n N(m_n, s_n) to the error histogram."""
+    e = errors[np.isfinite(errors)]
+    lo, hi = np.percentile(e, [0.5, 99.5])
+    lo, hi = min(lo, -4 * los_guess.los_std), max(hi, 4 * los_guess.los_std)
+    counts, edges = np.histogram(e, bins=bins, range=(lo, hi))
+    width = edges[1] - edges[0]
+    a_k = 0.5 * (edges[1:] + edges[:-1])  # bin midpoints, m
+    b_k = counts / (len(e) * width)  # frequency density, 1/m
+
+    def model(theta: F64) -> F64:
+        w_l, mu_l, ls_l, w_n, mu_n, ls_n = theta
+        return (w_l * _normal_pdf(a_k, mu_l, math.exp(ls_l))
+                + w_n * _normal_pdf(a_k, mu_n, math.exp(ls_n)))
+
+    def cost(theta: F64) -> float:
+        return float(np.sum((model(theta) - b_k) ** 2))
+
+    s_l = max(float(np.std(e[np.abs(e) < 3 * los_guess.los_std + 0.05])), 0.01)
+    best = None
+    for mu_n0 in (los_guess.nlos_mean, 3 * los_guess.nlos_mean, 0.5):
+        theta0 = np.array([0.8, 0.0, math.log(s_l), 0.2, mu_n0, math.log(los_guess.nlos_std)])
+        bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(0.003), math.log(0.3)),
+                  (0.0, 1.5), (0.0, 3.0), (math.log(0.01), math.log(2.0))]
+        r = minimize(cost, theta0, method="L-BFGS-B", bounds=bounds)
+        if best is None or r.fun < best.fun:
+            best = r
+    assert best is not None
+    w_l, _mu_l, ls_l, w_n, mu_n, ls_n = best.x
+    total = max(w_l + w_n, 1e-9)
+    prior = float(w_n / total)
+    if prior < 0.01 or math.exp(ls_n) < math.exp(ls_l):
+        # No separate NLOS mode: one LOS curve.
+        return NlosParams(float(math.exp(ls_l)), los_guess.nlos_mean, los_guess.nlos_std,
+                          max(prior, 0.01))
+    return NlosParams(float(math.exp(ls_l)), float(mu_n), float(math.exp(ls_n)), prior)
+
+
+def range_errors(log: SensorLog, config: Config) -> tuple[F64, NDArray[np.int32]]:
+    """Measured minus true range (m) for every range of a log with ground truth.
+
+    The true tag position is the ground-truth base pose interpolated at the range stamp
+    (linear position, nearest orientation) with `tag_in_base` applied. Ranges outside the
+    ground-truth time span are NaN. Returns (errors (R,), anchor indices (R,)).
+    """
+    gt, rs, anchors = log.ground_truth, log.ranges, log.anchors
+    if gt is None or len(gt) < 2:
+        raise EstimatorError(f"{log.source}: calibrate-nlos needs ground truth in the log")
+    if rs is None or not len(rs) or anchors is None:
+        raise EstimatorError(f"{log.source}: calibrate-nlos needs ranges and an anchor map")
+    t = rs.t_ns
+    pos = np.column_stack([np.interp(t, gt.t_ns, gt.position[:, k]) for k in range(3)])
+    k = np.clip(np.searchsorted(gt.t_ns, t), 0, len(gt) - 1)
+    rot = Rotation.from_quat(gt.quat_xyzw[k]).as_matrix()
+    tag = pos + rot @ np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+    true = np.linalg.norm(tag - anchors.positions[rs.anchor], axis=1)
+    err = rs.range - true
+    outside = (t < gt.t_ns[0]) | (t > gt.t_ns[-1])
+    err[outside] = np.nan
+    return err, rs.anchor
+
+
+def calibrate_nlos(
+    log: SensorLog, config: Config, *, bins: int = 60, min_samples: int = 200
+) -> NlosModel:
+    """Fit the LOS/NLOS range-error distributions per anchor (Qiu eq. 8-9) from a log with
+    ground truth; anchors with fewer than `min_samples` ranges keep the global fit.
+
+    Returns an `NlosModel`; `model.to_toml()` gives the `[wls]` values.
+    """
+    err, anc = range_errors(log, config)
+    assert log.anchors is not None
+    guess = NlosModel.from_config(config.wls).default
+    ok = np.isfinite(err)
+    if np.count_nonzero(ok) < min_samples:
+        raise EstimatorError(
+            f"{log.source}: calibrate-nlos needs at least {min_samples} ranges within the "
+            f"ground-truth time span, got {int(np.count_nonzero(ok))}"
+        )
+    default = _fit_histogram(err[ok], bins, guess)
+    per: dict[str, NlosParams] = {}
+    samples: dict[str, int] = {}
+    for i, aid in enumerate(log.anchors.ids):
+        e = err[ok & (anc == i)]
+        samples[aid] = len(e)
+        if len(e) >= min_samples:
+            per[aid] = _fit_histogram(e, bins, default)
+    return NlosModel(default, per, samples)
