@@ -216,6 +216,30 @@ def test_batch_survives_a_worker_killed_mid_batch(
 
 
 @needs_dask
+def test_batch_stops_when_no_worker_is_left(
+    logs: dict[str, list[Path]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Test that losing the only worker ends the batch with a FleetError, not a hang,
+    keeping the jobs done so far for resume."""
+    monkeypatch.setattr(fleet, "WORKER_WAIT_S", 1.0)
+    monkeypatch.setattr(fleet, "POLL_S", 0.2)
+    procs = DaskProcesses(tmp_path / "dask", n_workers=1)
+
+    def progress(done: int, total: int, note: str) -> None:
+        if done == 1:
+            procs.kill(procs.workers[0])
+
+    out = tmp_path / "out"
+    try:
+        with pytest.raises(FleetError, match="no Dask workers left"):
+            batch_run(logs["good"], METHOD, out_dir=out, scheduler=procs.address,
+                      progress=progress)
+    finally:
+        procs.close()
+    assert len(list(out.glob(f"*.{METHOD.value}.json"))) == 1
+
+
+@needs_dask
 def test_batch_local_cluster_and_resume(logs: dict[str, list[Path]], tmp_path: Path) -> None:
     """Test the in-process LocalCluster path, then that a re-run resumes complete jobs only."""
     out = tmp_path / "out"

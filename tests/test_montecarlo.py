@@ -16,6 +16,7 @@ from uwbfuse import fleet
 from uwbfuse.config import Config
 from uwbfuse.errors import FleetError, SimulationError
 from uwbfuse.estimator import Method
+from uwbfuse.fleet import config_payload
 from uwbfuse.montecarlo import (
     RunSpec,
     align_first_pose,
@@ -33,6 +34,7 @@ needs_dask = pytest.mark.skipif(
     reason="dask.distributed not installed (pip install 'uwbfuse[fleet]'); CI installs it",
 )
 T0 = 1_700_000_000 * NS_PER_S
+CFG = config_payload(Config())
 
 
 def _line(n: int, yaw: float, offset: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> PoseStream:
@@ -84,7 +86,7 @@ def test_run_job_isolates_a_crashing_method(monkeypatch: pytest.MonkeyPatch) -> 
         return real(log, method, config)
 
     monkeypatch.setattr(uwbfuse.pipeline, "estimate", crash_imu)
-    spec = RunSpec("seed-00004", "room", 21.0, 4, (Method.IMU, Method.ODOM), Config(),
+    spec = RunSpec("seed-00004", "room", 21.0, 4, (Method.IMU, Method.ODOM), CFG,
                    (20.0,), "auto")
     rows = run_montecarlo_job(spec)
     assert [r["method"] for r in rows] == ["imu", "odom"]
@@ -94,7 +96,7 @@ def test_run_job_isolates_a_crashing_method(monkeypatch: pytest.MonkeyPatch) -> 
     assert odom["status"] == "ok" and odom["seed"] == 4
     assert 0 <= odom[time_label(20.0)] < 0.5 and odom["ate_rmse_m"] < 0.5
     # An unknown scenario fails every row of the run, with the simulator's message.
-    bad = run_montecarlo_job(RunSpec("x", "nowhere", 5.0, 0, (Method.ODOM,), Config(),
+    bad = run_montecarlo_job(RunSpec("x", "nowhere", 5.0, 0, (Method.ODOM,), CFG,
                                      (1.0,), "auto"))
     assert bad[0]["status"] == "failed" and "nowhere" in bad[0]["error"]
 
@@ -126,7 +128,7 @@ def test_study_on_local_cluster_matches_in_process_runs_and_resumes(tmp_path: Pa
 
     # Same numbers as running seed 1 here (workers are separate processes).
     here = run_montecarlo_job(
-        RunSpec("seed-00001", "room", 22.0, 1, (Method.ODOM, Method.IMU), Config(),
+        RunSpec("seed-00001", "room", 22.0, 1, (Method.ODOM, Method.IMU), CFG,
                 (20.0,), "auto")
     )
     there = [r for r in res.rows if r["seed"] == 1]

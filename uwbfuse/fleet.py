@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from uwbfuse.config import Config, dump_config, load_config
+from uwbfuse.config import Config, config_from_dict, dump_config, load_config
 from uwbfuse.errors import FleetError, UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.progress import ProgressFn
@@ -56,6 +56,8 @@ log = logging.getLogger(__name__)
 
 DONE_FORMAT = 1
 WORKER_WAIT_S = 30.0
+"""Seconds to wait for a scheduler, or for a worker when the cluster has none."""
+POLL_S = 2.0
 MAX_ERROR_CHARS = 400
 
 SUMMARY_COLUMNS: tuple[str, ...] = (
@@ -136,6 +138,18 @@ def one_line(text: str, limit: int = MAX_ERROR_CHARS) -> str:
 
 def sha256_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def config_payload(config: Config) -> dict[str, Any]:
+    """The config as plain data for a worker, which validates it again (`worker_config`):
+    a worker whose uwbfuse differs in a field gets its own defaults or a clear error,
+    rather than a pickled model of another version."""
+    return config.model_dump(mode="json")
+
+
+def worker_config(payload: dict[str, Any]) -> Config:
+    """The `Config` a worker runs with, from `config_payload` (raises ConfigError)."""
+    return config_from_dict(payload, "config sent by the client")
 
 
 def config_digest(config: Config) -> str:
@@ -329,18 +343,21 @@ def run_jobs(
                     progress(done, total, job.name)
             return info
 
-        from distributed import as_completed
-
         token = uuid.uuid4().hex[:8]
         futures = {}
         for job in jobs:
             fut = client.submit(job.fn, job.arg, key=f"uwbfuse-{job.name}-{token}", pure=False)
-            futures[fut.key] = (fut, job)
-        for fut in as_completed([f for f, _ in futures.values()]):
-            job = futures[fut.key][1]
+            futures[fut] = job
+        for fut in _completed(client, list(futures), info):
+            job = futures.pop(fut)
             try:
                 value = fut.result()
-            except Exception as e:  # KilledWorker, cancelled, lost scheduler, ...
+            except Exception as e:  # KilledWorker (its worker died too often), cancelled
+                if client.status not in ("running", "connecting"):
+                    raise FleetError(
+                        f"lost the Dask scheduler {info.scheduler} ({type(e).__name__}); "
+                        f"{len(futures) + 1} jobs unfinished: run again to resume"
+                    ) from None
                 log.warning("job %s did not complete: %s", job.name, e)
                 on_result(job, None, e)
             else:
@@ -350,6 +367,43 @@ def run_jobs(
             if progress is not None:
                 progress(done, total, job.name)
         return info
+
+
+def _completed(client: Any, futures: list[Any], info: ClusterInfo) -> Iterator[Any]:
+    """Yield futures as they finish; raise FleetError when the cluster has had no worker
+    for `WORKER_WAIT_S` (tasks would wait forever)."""
+    from concurrent.futures import CancelledError
+
+    from distributed import wait
+
+    pending = set(futures)
+    alone_since: float | None = None
+    while pending:
+        try:
+            wait(list(pending), timeout=POLL_S, return_when="FIRST_COMPLETED")
+        except (TimeoutError, CancelledError):  # cancelled: their result() says so
+            pass
+        done = {f for f in pending if f.status in ("finished", "error", "cancelled")}
+        pending -= done
+        yield from done
+        if done:
+            alone_since = None
+            continue
+        if client.status not in ("running", "connecting"):
+            raise FleetError(
+                f"lost the Dask scheduler {info.scheduler}; {len(pending)} jobs unfinished: "
+                "run again to resume"
+            )
+        if client.nthreads():
+            alone_since = None
+        elif alone_since is None:
+            alone_since = time.monotonic()
+        elif time.monotonic() - alone_since > WORKER_WAIT_S:
+            client.cancel(list(pending))
+            raise FleetError(
+                f"no Dask workers left at {info.scheduler} for {WORKER_WAIT_S:.0f} s; "
+                f"{len(pending)} jobs unfinished: run again to resume"
+            )
 
 
 # --------------------------------------------------------------------------------------
@@ -363,7 +417,7 @@ class BatchJobSpec:
     name: str
     log: str
     method: Method
-    config: Config
+    config: dict[str, Any]  # config_payload(): validated again on the worker
     config_sha256: str
 
 
@@ -433,9 +487,10 @@ def run_batch_job(spec: BatchJobSpec) -> BatchJobOutput:
         from uwbfuse.io.reader import read_log
         from uwbfuse.io.tum import write_tum
 
-        sensor_log = read_log(spec.log, spec.config)
+        config = worker_config(spec.config)
+        sensor_log = read_log(spec.log, config)
         read_s = time.perf_counter() - tic
-        res = estimate(sensor_log, spec.method, spec.config)
+        res = estimate(sensor_log, spec.method, config)
         res.read_wall_s = read_s
         with tempfile.TemporaryDirectory(prefix="uwbfuse-batch-") as d:
             tmp = Path(d) / "est.tum"
@@ -604,7 +659,7 @@ def batch_run(
     if len(unique) < len(resolved):
         log.warning("%d logs given more than once: each runs once", len(resolved) - len(unique))
     specs = [
-        BatchJobSpec(name, lg, m, config, sha)
+        BatchJobSpec(name, lg, m, config_payload(config), sha)
         for name, lg in zip(job_names(unique), unique, strict=True)
     ]
     write_atomic(out / "config.toml", dump_config(config))

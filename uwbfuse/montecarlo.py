@@ -33,17 +33,19 @@ from typing import Any
 
 import numpy as np
 
-from uwbfuse.config import Config, dump_config, load_config
+from uwbfuse.config import dump_config, load_config
 from uwbfuse.errors import FleetError, UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.fleet import (
     ClusterInfo,
     Job,
     config_digest,
+    config_payload,
     one_line,
     run_jobs,
     table_csv,
     table_markdown,
+    worker_config,
     write_atomic,
 )
 from uwbfuse.progress import ProgressFn
@@ -155,7 +157,7 @@ class RunSpec:
     duration_s: float
     seed: int
     methods: tuple[Method, ...]
-    config: Config
+    config: dict[str, Any]  # fleet.config_payload(): validated again on the worker
     times_s: tuple[float, ...]
     align: str
 
@@ -172,6 +174,7 @@ def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
         return row
 
     try:
+        config = worker_config(spec.config)
         sim = simulate(spec.scenario, duration_s=spec.duration_s, seed=spec.seed)
         gt = sim.ground_truth
         if gt is None or len(gt) < 2:
@@ -181,14 +184,14 @@ def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
         text = str(e) if isinstance(e, UwbfuseError) else f"{type(e).__name__}: {e}"
         if not isinstance(e, UwbfuseError):
             log.exception("seed %d: simulation crashed", spec.seed)
-        return [dict(base(m), error=one_line(f"simulate: {text}")) for m in spec.methods]
+        return [dict(base(m), error=one_line(text)) for m in spec.methods]
 
     rows = []
     for m in spec.methods:
         row = base(m)
         tic = time.perf_counter()
         try:
-            res = estimate(sim, m, spec.config)
+            res = estimate(sim, m, config)
             est = res.trajectory
             if spec.align == "first" or (spec.align == "auto" and m in DEAD_RECKONING):
                 est = align_first_pose(est, gt)
@@ -383,7 +386,7 @@ def montecarlo(
 
     specs = [
         RunSpec(f"seed-{seed0 + i:05d}", scenario, float(duration_s), seed0 + i, chosen,
-                config, times, align)
+                config_payload(config), times, align)
         for i in range(runs)
     ]
     results: dict[str, list[dict[str, Any]]] = {}
