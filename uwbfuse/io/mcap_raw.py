@@ -13,7 +13,9 @@ Record layouts: MCAP specification (https://mcap.dev/spec), all integers little-
 
 from __future__ import annotations
 
+import mmap
 import struct
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -284,7 +286,7 @@ class _Scanner:
         can be recovered from the partial data are used.
         """
         p = pos + 9
-        _, _, usize, _, clen = _CHUNK_HEAD.unpack_from(buf, p)
+        _, _, usize, crc, clen = _CHUNK_HEAD.unpack_from(buf, p)
         p += _CHUNK_HEAD.size
         compression = bytes(buf[p : p + clen]).decode("ascii", errors="replace")
         p += clen
@@ -293,6 +295,8 @@ class _Scanner:
         end = p + rlen if truncated_end is None else min(p + rlen, truncated_end)
         data = _decompress(compression, memoryview(buf)[p:end], usize,
                            partial=truncated_end is not None)
+        if truncated_end is None and crc and zlib.crc32(data) != crc:
+            raise ValueError("CRC mismatch of the uncompressed records")
         index = _index_offsets(buf, index_pos) if index_pos else None
         self._chunk_records(data, index)
 
@@ -410,7 +414,7 @@ def _decompress(
     raise LogReadError(f"unsupported chunk compression {compression!r}")
 
 
-def scan_mcap(path: Path, want: WantFn, data: bytes | None = None) -> ScanResult:
+def scan_mcap(path: Path, want: WantFn, data: bytes | mmap.mmap | None = None) -> ScanResult:
     """Scan the MCAP file at `path` (or its bytes `data`); keep message rows where `want`.
 
     Raises LogReadError if the file does not start with the MCAP magic.
@@ -422,8 +426,8 @@ def scan_mcap(path: Path, want: WantFn, data: bytes | None = None) -> ScanResult
     scanner = _Scanner(path, want)
     try:
         scanner.scan(buf)
-    except Exception as e:  # zstd/lz4 errors have no common base class
-        if isinstance(e, LogReadError):
-            raise LogReadError(f"{path}: {e}") from None
+    except LogReadError as e:
+        raise LogReadError(f"{path}: {e}") from None
+    except (struct.error, IndexError, ValueError, OverflowError) as e:  # malformed records
         raise LogReadError(f"{path}: corrupt MCAP data: {e}") from None
     return scanner.result

@@ -75,7 +75,8 @@ def skip_undecodable(topic: str) -> str:
 _ACCEPTED = {
     IMU: (msgdefs.IMU,),
     WHEEL: (msgdefs.ODOMETRY, msgdefs.JOINT_STATE),
-    GT: (msgdefs.POSE_STAMPED, msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED),
+    GT: (msgdefs.POSE_STAMPED, msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED,
+         "geometry_msgs/msg/PoseWithCovarianceStamped"),
 }
 
 
@@ -170,6 +171,7 @@ def _kind(role: str, type_name: str, msg: Any) -> str:
     if role == IMU:
         return "imu"
     by_type = {_norm(msgdefs.ODOMETRY): "odometry", _norm(msgdefs.JOINT_STATE): "joint_state",
+               "geometry_msgs/PoseWithCovarianceStamped": "odometry",  # pose.pose as well
                _norm(msgdefs.POSE_STAMPED): "pose", _norm(msgdefs.TRANSFORM_STAMPED):
                "transform"}
     if t in by_type:

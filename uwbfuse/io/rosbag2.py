@@ -9,6 +9,8 @@ Only the few keys needed are parsed (no YAML dependency). Per-file compression
 
 from __future__ import annotations
 
+import mmap
+import os
 import re
 from pathlib import Path
 
@@ -77,14 +79,19 @@ def log_files(path: str | Path) -> list[Path]:
     return files
 
 
-def read_bytes(path: Path) -> bytes:
-    """The MCAP bytes of `path` (a `.zstd` file is decompressed whole)."""
-    data = path.read_bytes()
+def read_bytes(path: Path) -> bytes | mmap.mmap:
+    """The MCAP bytes of `path`: memory-mapped (read-only); a `.zstd` file decompressed whole."""
     if path.suffix == ".zstd":
         import zstandard
 
         try:
-            return zstandard.ZstdDecompressor().decompressobj().decompress(data)
+            return zstandard.ZstdDecompressor().decompressobj().decompress(path.read_bytes())
         except zstandard.ZstdError as e:
             raise LogReadError(f"{path}: cannot decompress: {e}") from None
-    return data
+    try:
+        with path.open("rb") as f:
+            if os.fstat(f.fileno()).st_size == 0:
+                return b""
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError) as e:
+        raise LogReadError(f"{path}: cannot read: {e}") from None

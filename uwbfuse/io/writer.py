@@ -7,36 +7,31 @@ Topics and types (CONTRACT.md): /imu `sensor_msgs/msg/Imu` (frame imu_link), /wh
 `geometry_msgs/msg/PoseStamped` (frame map). Every message's log time is its header stamp.
 
 Messages are encoded by the vectorised encoders of `cdr_fast` (byte-identical to
-`mcap_ros2.writer`, checked in the tests) and written with the `mcap` writer in stamp order.
-The file is written to a temporary file in the target directory and renamed, so a failed
-write leaves no partial file.
+`mcap_ros2.writer`, checked in the tests) and written in stamp order by the vectorised
+`mcap_write` (the output reads with the `mcap` and `mcap_ros2` readers, also checked). The
+file is written to a temporary file in the target directory and renamed, so a failed write
+leaves no partial file.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
+import secrets
 from pathlib import Path
 
 import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType
-from mcap.writer import Writer as McapWriter
 
 from uwbfuse.config import Topics
 from uwbfuse.io import cdr_fast, msgdefs
+from uwbfuse.io.mcap_write import ChannelDef, SchemaDef, write_mcap
 from uwbfuse.streams import SensorLog
 
 ANCHORS_METADATA = "uwb_anchors"
 LIBRARY = "uwbfuse"
 
-_COMPRESSION = {
-    "zstd": CompressionType.ZSTD,
-    "lz4": CompressionType.LZ4,
-    "none": CompressionType.NONE,
-    "": CompressionType.NONE,
-}
+_COMPRESSION = ("zstd", "lz4", "none")
 
 
 def anchors_metadata(log: SensorLog) -> dict[str, str]:
@@ -85,53 +80,36 @@ def write_contract_log(
 ) -> None:
     """Write `log` to the MCAP file `path` (atomically: temporary file, then rename).
 
-    compression: "zstd", "lz4" or "none" (chunks are always used, with a summary and
-    message indexes). topics: topic names (contract defaults if None).
+    compression: "zstd", "lz4" or "none" (chunked, with a summary and message indexes).
+    topics: topic names (contract defaults if None). chunk_size: uncompressed bytes.
     """
     if compression not in _COMPRESSION:
         raise ValueError(f"unknown compression {compression!r} (zstd, lz4 or none)")
     topics = topics or Topics()
     path = Path(path)
     streams = _encode_streams(log, topics)
-    fd, tmp = tempfile.mkstemp(dir=path.parent or Path("."), prefix=f".{path.name}.",
-                               suffix=".tmp")
+    schemas = [SchemaDef(type_name, SchemaEncoding.ROS2, msgdefs.schema_text(type_name).encode())
+               for _, type_name, _, _ in streams]
+    channels = [ChannelDef(topic, MessageEncoding.CDR, k)
+                for k, (topic, _, _, _) in enumerate(streams)]
+    stamps = (np.concatenate([s[2] for s in streams]).astype(np.int64) if streams
+              else np.zeros(0, np.int64))
+    which = (np.concatenate([np.full(len(s[2]), k) for k, s in enumerate(streams)])
+             if streams else np.zeros(0, np.int64))
+    order = np.argsort(stamps, kind="stable")
+    every = [d for s in streams for d in s[3]]
+    datas = [every[i] for i in order.tolist()]
+    meta = anchors_metadata(log)
+    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
     try:
-        with os.fdopen(fd, "wb") as f:
-            writer = McapWriter(f, chunk_size=chunk_size,
-                                compression=_COMPRESSION[compression])
-            writer.start(profile="ros2", library=LIBRARY)
-            channels = []
-            for topic, type_name, _, _ in streams:
-                sid = writer.register_schema(type_name, SchemaEncoding.ROS2,
-                                             msgdefs.schema_text(type_name).encode())
-                channels.append(writer.register_channel(topic, MessageEncoding.CDR, sid))
-            _write_merged(writer, channels, streams)
-            meta = anchors_metadata(log)
-            if meta:
-                writer.add_metadata(ANCHORS_METADATA, meta)
-            writer.finish()
+        with tmp.open("xb") as f:
+            write_mcap(f, schemas=schemas, channels=channels, channel=which[order],
+                       log_time=stamps[order], datas=datas,
+                       metadata=[(ANCHORS_METADATA, meta)] if meta else [],
+                       library=LIBRARY, compression=compression, chunk_size=chunk_size)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
-
-
-def _write_merged(
-    writer: McapWriter,
-    channels: list[int],
-    streams: list[tuple[str, str, np.ndarray, list[bytes]]],
-) -> None:
-    """Add every message, all streams merged in stamp order (log time = stamp)."""
-    if not streams:
-        return
-    stamps = np.concatenate([s[2] for s in streams]).astype(np.int64)
-    which = np.concatenate([np.full(len(s[2]), k) for k, s in enumerate(streams)])
-    index = np.concatenate([np.arange(len(s[2])) for s in streams])
-    order = np.argsort(stamps, kind="stable")
-    datas = [s[3] for s in streams]
-    add = writer.add_message
-    for t, k, i in zip(stamps[order].tolist(), which[order].tolist(), index[order].tolist(),
-                       strict=True):
-        add(channel_id=channels[k], log_time=t, data=datas[k][i], publish_time=t)
