@@ -209,3 +209,24 @@ def test_unsupported_encoding_on_role_topic(tmp_path: Path) -> None:
     with pytest.raises(LogReadError) as e:
         read_log(p, Config())
     _one_line(e, "/imu", "protobuf")
+
+
+def test_wrong_ground_truth_type_is_a_warning(tmp_path: Path) -> None:
+    """test that an unusable ground-truth topic warns (GT is optional) instead of failing."""
+    log = small_log(40)
+    p = tmp_path / "log.mcap"
+    write_contract_log(p, log)
+    got = read_log(p, config_from_dict({"topics": {"ground_truth": "/imu"}}))
+    assert got.ground_truth is None
+    assert len(got.imu) == 40
+    assert any("ground truth not read" in w and "/imu" in w for w in got.report.warnings)
+
+
+def test_imu_type_on_uwb_topic_uses_field_mapping(tmp_path: Path) -> None:
+    """test that a non-Range type on the UWB topic is read through [uwb] (here: no field)."""
+    log = small_log(40)
+    p = tmp_path / "log.mcap"
+    write_contract_log(p, log)
+    with pytest.raises(LogReadError) as e:
+        read_log(p, config_from_dict({"topics": {"uwb": "/imu"}}))
+    _one_line(e, "/imu", "anchor_id", "[uwb]")

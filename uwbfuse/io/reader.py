@@ -127,6 +127,8 @@ class _ChannelSink:
                 channel.schema.name, channel.schema.encoding,
                 channel.schema.data.decode("utf-8", errors="replace"),
             )
+        if UWB in roles and self.fast not in (None, msgdefs.RANGE):
+            self.fast = None  # other types on the UWB topic go through the [uwb] mapping
         self.fast_parts: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
         self.pending_time: list[np.ndarray] = []
         self.pending: list[bytes] = []
@@ -300,16 +302,28 @@ def _fast_columns(sink: _ChannelSink, role: str, cols: _Columns) -> None:
                      valid=np.ones(len(lt), dtype=bool))
 
 
-def _check_type(source: str, sink: _ChannelSink, role: str) -> None:
+def _type_problem(sink: _ChannelSink, role: str) -> str | None:
+    """Why `sink`'s type cannot serve `role`, or None. Non-ROS (e.g. json) names pass."""
     accepted = _ACCEPTED.get(role)
-    if accepted is None or not sink.type_name:
-        return
-    if sink.type_name not in {_norm(a) for a in accepted}:
-        topic = sink.channel.topic
-        raise LogReadError(
-            f"{source}: topic {topic!r} has type {sink.type_name!r} but the {role} role "
-            f"accepts {', '.join(accepted)}"
-        )
+    if accepted is None or "/" not in sink.type_name:
+        return None
+    if sink.type_name in {_norm(a) for a in accepted}:
+        return None
+    return f"has type {sink.type_name!r} but the {role} role accepts {', '.join(accepted)}"
+
+
+class _Problems:
+    """Problems with role topics: errors for sensor roles, warnings for ground truth."""
+
+    def __init__(self, source: str, report: ReadReport) -> None:
+        self.source = source
+        self.report = report
+
+    def __call__(self, role: str, topic: str, what: str) -> None:
+        if role == GT:  # optional and never used by estimators: do not fail a run over it
+            self.report.warnings.append(f"ground truth not read: topic {topic!r} {what}")
+            return
+        raise LogReadError(f"{self.source}: topic {topic!r} {what}")
 
 
 def _collect(
@@ -317,19 +331,29 @@ def _collect(
     report: ReadReport,
 ) -> None:
     """Decode what each channel sink holds into the role columns."""
+    problem = _Problems(source, report)
     for sink in sinks:
         topic = sink.channel.topic
+        usable = []
         for role in sink.roles:
-            _check_type(source, sink, role)
+            why = _type_problem(sink, role)
+            if why is not None:
+                problem(role, topic, why)
+                continue
+            usable.append(role)
             roles[role].present = True
             _fast_columns(sink, role, roles[role].columns)
-        if not sink.pending:
+        if not sink.pending or not usable:
             continue
         lt, datas = sink.pending_messages()
         try:
             decode = generic_decoder(sink.channel)
         except DecoderUnavailable as e:
-            raise LogReadError(f"{source}: topic {topic!r}: {e}") from None
+            for role in usable:
+                if role == GT:
+                    roles[GT].present = False
+                problem(role, topic, str(e))
+            continue
         msgs: list[Any] = []
         keep: list[int] = []
         for i, d in enumerate(datas):
@@ -340,16 +364,14 @@ def _collect(
             keep.append(i)
         report.skip(skip_undecodable(topic), len(datas) - len(keep))
         lt_kept = lt[np.asarray(keep, dtype=np.int64)]
-        for role in sink.roles:
+        for role in usable:
             try:
                 _extract_generic(sink, role, msgs, lt_kept, roles[role].columns, config,
                                  report)
             except _FieldError as e:
                 key = {UWB: " (see [uwb] anchor_field/range_field/array_field/valid_field)"}
-                raise LogReadError(
-                    f"{source}: topic {topic!r} ({sink.type_name or 'no schema'}) has no "
-                    f"field {e.args[0]!r}{key.get(role, '')}"
-                ) from None
+                problem(role, topic, f"({sink.type_name or 'no schema'}) has no field "
+                        f"{e.args[0]!r}{key.get(role, '')}")
 
 
 def _stamps(cols: _Columns, role: str, topic: str, report: ReadReport) -> np.ndarray:
