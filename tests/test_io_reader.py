@@ -390,6 +390,33 @@ def test_rosbags_rosbag2_directory(tmp_path: Path) -> None:
     assert got.ground_truth.has_orientation
 
 
+def test_rosbags_file_compressed_rosbag2(tmp_path: Path) -> None:
+    """test a rosbag2 dir with per-file zstd compression (x.mcap.zstd) written by rosbags."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    ts = _typestore()
+    T, header = _ros_msgs(ts)
+    V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    z9 = np.zeros(9)
+    bag = tmp_path / "zbag"
+    w = Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP)
+    w.set_compression(CompressionMode.FILE, CompressionFormat.ZSTD)
+    with w:
+        conn = w.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=ts)
+        for k in range(10):
+            t = T0 + k * 10**7
+            msg = T["sensor_msgs/msg/Imu"](
+                header=header(t, "imu"), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=z9, angular_velocity=V3(x=0.0, y=0.0, z=float(k)),
+                angular_velocity_covariance=z9, linear_acceleration=V3(x=0.0, y=0.0, z=9.8),
+                linear_acceleration_covariance=z9)
+            w.write(conn, t, ts.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
+    assert [p.name for p in bag.glob("*.zstd")]
+    got = read_log(bag, Config())
+    np.testing.assert_array_equal(got.imu.gyro[:, 2], np.arange(10.0))
+
+
 def test_multi_file_rosbag2_is_merged_in_order(tmp_path: Path) -> None:
     """test that a rosbag2 dir with two .mcap files listed in metadata.yaml reads both."""
     log = small_log(200)
@@ -580,3 +607,47 @@ def test_generic_decoder_objects_support_paths() -> None:
     assert stamp_ns({"header": {"stamp": {"sec": 1, "nsec": 2}}}) == 10**9 + 2
     assert anchor_key(np.uint16(7475)) == "7475"
     assert anchor_key(7475.0) == "7475"
+
+
+def test_range_with_trailing_variance_field_uses_fast_path(tmp_path: Path) -> None:
+    """test a Jazzy-style Range (extra `float32 variance`): same prefix, still vectorised."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    text = msgdefs.schema_text(msgdefs.RANGE).replace(
+        "float32 range\n", "float32 range\nfloat32 variance\n", 1)
+    assert cdr_fast.fast_type(msgdefs.RANGE, "ros2msg", text) == msgdefs.RANGE
+    enc = serialize_dynamic(msgdefs.RANGE, text)[msgdefs.RANGE]
+    msgs = []
+    for k in range(6):
+        t = T0 + k * 10**8
+        m = NS(header=NS(stamp=NS(sec=t // 10**9, nanosec=t % 10**9), frame_id=f"A{k % 2}"),
+               radiation_type=0, field_of_view=0.0, min_range=0.0, max_range=50.0,
+               range=float(k + 1), variance=0.01)
+        msgs.append(("/uwb/range", t, enc(m)))
+    path = tmp_path / "jazzy.mcap"
+    with path.open("wb") as f:
+        w = McapWriter(f)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(msgdefs.RANGE, SchemaEncoding.ROS2, text.encode())
+        cid = w.register_channel("/uwb/range", MessageEncoding.CDR, sid)
+        for _, t, d in msgs:
+            w.add_message(cid, log_time=t, data=d, publish_time=t)
+        w.finish()
+    got = read_log(path, config_from_dict({"anchors": {"A0": [0, 0, 0], "A1": [1, 0, 0]}}))
+    np.testing.assert_allclose(got.ranges.range, np.arange(1.0, 7.0))
+    assert got.ranges.anchor.tolist() == [0, 1, 0, 1, 0, 1]
+
+
+def test_contract_and_real_types_never_need_the_generic_decoder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """test that the fixed-layout types are all decoded on the vectorised path."""
+    import uwbfuse.io.reader as reader_mod
+
+    def no_generic(channel: object) -> None:
+        raise AssertionError("generic decoder used")
+
+    monkeypatch.setattr(reader_mod, "generic_decoder", no_generic)
+    path = tmp_path / "log.mcap"
+    write_contract_log(path, small_log(100))
+    assert len(read_log(path, Config()).imu) == 100
