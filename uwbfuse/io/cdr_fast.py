@@ -5,13 +5,17 @@ A ROS 2 message is a 4-byte encapsulation header (`00 01 00 00` = CDR_LE) follow
 payload; alignment is relative to the payload start: 4 bytes for (u)int32/float32 and
 string lengths, 8 bytes for float64. `std_msgs/Header` is `int32 sec, uint32 nanosec,
 string frame_id` (uint32 length including the NUL, then the bytes and the NUL), so once the
-frame_id length is known every later field sits at a fixed offset. Messages of one length
-and one frame_id length therefore form a (n, L) uint8 matrix whose columns are fields, read
-with one numpy view each. Rows that do not fit (big-endian, other encapsulations, lengths
-that do not add up) are reported back so the caller can use the generic decoder.
+frame_id length (and, for Odometry/TransformStamped, the child_frame_id length) is known,
+every later field sits at a computed offset. Decoding reads the string lengths of all
+messages at once, computes each message's field offsets with numpy, and gathers only the
+bytes of the fields needed (a few dozen per message) straight from the chunk buffer.
+Messages that do not fit (big-endian or other encapsulations, lengths that do not add up)
+are reported back so the caller can use the generic decoder. Encoding builds one (n, L)
+uint8 matrix per group of messages sharing their frame ids.
 
 Supported types: sensor_msgs/msg/Imu, nav_msgs/msg/Odometry, sensor_msgs/msg/Range,
-geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped (ROS 2 Humble layouts).
+geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped (ROS 2 Humble layouts,
+or any schema whose flattened layout starts with them, e.g. Range with `variance`).
 """
 
 from __future__ import annotations
