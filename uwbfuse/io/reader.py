@@ -103,15 +103,19 @@ class _Columns:
             self.data.setdefault(k, []).append(np.asarray(v))
 
     def cat(self, name: str, shape: tuple[int, ...] = (), dtype: Any = np.float64) -> np.ndarray:
-        parts = self.data.get(name)
+        """Column `name` over all parts (the parts are released)."""
+        parts = self.data.pop(name, [])
         if not parts:
             return np.zeros((0, *shape), dtype=dtype)
-        return np.concatenate(parts)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def stamps(self) -> tuple[np.ndarray, np.ndarray]:
-        if not self.t_ns:
+        """Header stamps and log times over all parts (the parts are released)."""
+        t, lt = self.t_ns, self.log_time
+        self.t_ns, self.log_time = [], []
+        if not t:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        return np.concatenate(self.t_ns), np.concatenate(self.log_time)
+        return np.concatenate(t), np.concatenate(lt)
 
 
 class _ChannelSink:
@@ -389,11 +393,16 @@ def _stamps(cols: _Columns, role: str, topic: str, report: ReadReport) -> np.nda
 
 def _sort_dedup(
     t: np.ndarray, values: list[np.ndarray], role: str, report: ReadReport
-) -> np.ndarray:
-    """Indices that sort by stamp with exact duplicates (stamp and values) removed."""
+) -> np.ndarray | None:
+    """Indices that sort by stamp with exact duplicates (stamp and values) removed.
+
+    None when `t` is already strictly increasing (nothing to do).
+    """
+    if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):
+        return None
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    if len(ts) < 2 or bool(np.all(ts[1:] > ts[:-1])):
+    if bool(np.all(ts[1:] > ts[:-1])):
         return order
     flat = [v.reshape(len(t), -1) for v in values]
     keys = [c[:, j] for c in reversed(flat) for j in reversed(range(c.shape[1]))]
@@ -410,12 +419,27 @@ def _sort_dedup(
     return kept
 
 
-def _finite_rows(role: str, report: ReadReport, *arrays: np.ndarray) -> np.ndarray:
+def _finite_rows(role: str, report: ReadReport, *arrays: np.ndarray) -> np.ndarray | None:
+    """Mask of the rows with finite values in every array; None if all are finite."""
     ok = np.ones(len(arrays[0]), dtype=bool)
     for a in arrays:
         ok &= np.all(np.isfinite(a.reshape(len(a), -1)), axis=1)
-    report.skip(skip_non_finite(role), int((~ok).sum()))
-    return ok
+    bad = int((~ok).sum())
+    report.skip(skip_non_finite(role), bad)
+    return ok if bad else None
+
+
+def _rows(sel: np.ndarray | None, *arrays: np.ndarray) -> list[np.ndarray]:
+    """`arrays` restricted to `sel` (mask or index; None keeps them, without copying)."""
+    return list(arrays) if sel is None else [a[sel] for a in arrays]
+
+
+def _clean(
+    t: np.ndarray, values: list[np.ndarray], role: str, report: ReadReport
+) -> list[np.ndarray]:
+    """[t, *values] without non-finite rows and exact duplicates, sorted by stamp."""
+    cols = _rows(_finite_rows(role, report, *values), t, *values)
+    return _rows(_sort_dedup(cols[0], cols[1:], role, report), *cols)
 
 
 def _imu_stream(r: _Role, topic: str, report: ReadReport) -> ImuStream | None:
@@ -423,11 +447,8 @@ def _imu_stream(r: _Role, topic: str, report: ReadReport) -> ImuStream | None:
         return None
     c = r.columns
     t = _stamps(c, IMU, topic, report)
-    g, a = c.cat("gyro", (3,)), c.cat("accel", (3,))
-    ok = _finite_rows("imu", report, g, a)
-    t, g, a = t[ok], g[ok], a[ok]
-    k = _sort_dedup(t, [g, a], "imu", report)
-    return ImuStream(t[k], np.ascontiguousarray(g[k]), np.ascontiguousarray(a[k]))
+    t, g, a = _clean(t, [c.cat("gyro", (3,)), c.cat("accel", (3,))], "imu", report)
+    return ImuStream(t, np.ascontiguousarray(g), np.ascontiguousarray(a))
 
 
 def _wheel_stream(r: _Role, topic: str, report: ReadReport) -> WheelStream | None:
@@ -435,11 +456,8 @@ def _wheel_stream(r: _Role, topic: str, report: ReadReport) -> WheelStream | Non
         return None
     c = r.columns
     t = _stamps(c, "wheel", topic, report)
-    v, w = c.cat("v"), c.cat("omega")
-    ok = _finite_rows("wheel", report, v, w)
-    t, v, w = t[ok], v[ok], w[ok]
-    k = _sort_dedup(t, [v, w], "wheel", report)
-    return WheelStream(t[k], v[k], w[k])
+    t, v, w = _clean(t, [c.cat("v"), c.cat("omega")], "wheel", report)
+    return WheelStream(t, v, w)
 
 
 def _gt_stream(r: _Role, topic: str, report: ReadReport) -> PoseStream | None:
@@ -447,16 +465,14 @@ def _gt_stream(r: _Role, topic: str, report: ReadReport) -> PoseStream | None:
         return None
     c = r.columns
     t = _stamps(c, "ground-truth", topic, report)
-    p, q = c.cat("position", (3,)), c.cat("quat", (4,))
-    ok = _finite_rows("ground-truth", report, p, q)
-    t, p, q = t[ok], p[ok], q[ok]
+    t, p, q = _clean(t, [c.cat("position", (3,)), c.cat("quat", (4,))], "ground-truth",
+                     report)
     norm = np.linalg.norm(q, axis=1)
     identity = np.all(q[:, :3] == 0.0, axis=1) & ((q[:, 3] == 1.0) | (q[:, 3] == 0.0))
     has_orientation = bool(len(q)) and not bool(np.all(identity))
     q = np.where((norm > 0)[:, None], q / np.where(norm > 0, norm, 1.0)[:, None],
                  np.array([0.0, 0.0, 0.0, 1.0]))
-    k = _sort_dedup(t, [p, q], "ground-truth", report)
-    return PoseStream(t[k], np.ascontiguousarray(p[k]), np.ascontiguousarray(q[k]),
+    return PoseStream(t, np.ascontiguousarray(p), np.ascontiguousarray(q),
                       has_orientation=has_orientation)
 
 
@@ -508,8 +524,8 @@ def _range_stream(
         if stray:
             report.warnings.append(f"[uwb.range_offset] names unknown anchors: "
                                    f"{', '.join(stray)}")
-    k = _sort_dedup(t, [anchor, rng], "uwb", report)
-    return RangeStream(t[k], anchor[k].astype(np.int32), rng[k])
+    t, anchor, rng = _rows(_sort_dedup(t, [anchor, rng], "uwb", report), t, anchor, rng)
+    return RangeStream(t, anchor.astype(np.int32), rng)
 
 
 def _metadata_anchors(source: str, scans: list[ScanResult]) -> AnchorMap | None:
