@@ -96,8 +96,13 @@ class StreamingFilter:
     Subclasses implement `_start`, `_window`, `_inflate` and `_pose`.
     """
 
-    #: Consecutive gated ranges after which the position covariance is inflated.
-    MAX_CONSECUTIVE_GATED = 20
+    #: Divergence recovery: when at least GATED_MAX of the last RECENT ranges were gated,
+    #: or the mean normalised innovation squared (NIS; 1 for a consistent filter) of the
+    #: last RECENT accepted ranges exceeds chi2.ppf(gate_probability, RECENT) / RECENT,
+    #: the state is probably off (wheel slip, a bad start) rather than the ranges wrong,
+    #: and the position/heading covariance is inflated (`_inflate`).
+    RECENT = 12
+    GATED_MAX = 6
 
     def __init__(
         self,
@@ -149,7 +154,10 @@ class StreamingFilter:
         self.t_init: int | None = None
         self.used: Counter[int] = Counter()
         self.gated: Counter[int] = Counter()
-        self.consecutive_gated = 0
+        self._recent: list[bool] = []
+        self._recent_nis: list[float] = []
+        self.nis: F64 = np.zeros(0)
+        self.nis_max = gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
         self.gate_resets = 0
         self.stale = 0
 
@@ -338,14 +346,17 @@ class StreamingFilter:
         gated = anchors[~used]
         if len(gated):
             self.gated.update(gated.tolist())
-        if np.any(used):
-            self.consecutive_gated = 0
-        else:
-            self.consecutive_gated += len(gated)
-        if self.consecutive_gated >= self.MAX_CONSECUTIVE_GATED:
+        self._recent = (self._recent + (~used).tolist())[-self.RECENT :]
+        nis = self.nis[used] if len(self.nis) == len(used) else self.nis
+        self._recent_nis = (self._recent_nis + nis.tolist())[-self.RECENT :]
+        full = len(self._recent_nis) == self.RECENT
+        if sum(self._recent) >= self.GATED_MAX or (
+            full and sum(self._recent_nis) > self.nis_max * self.RECENT
+        ):
             self._inflate()
             self.gate_resets += 1
-            self.consecutive_gated = 0
+            self._recent = []
+            self._recent_nis = []
 
     def _absorb_inputs(self) -> None:
         imu = self._imu_in.take()

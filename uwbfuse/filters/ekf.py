@@ -190,9 +190,9 @@ class ErrorStateEkf(StreamingFilter):
             h[:, BG] = np.einsum("mi,mij->mj", u, pre.pe[k]) - np.einsum("mi,mij->mj", c, pre.c[k])
             h[:, BA] = -np.einsum("mi,mij->mj", u, pre.pc[k])
             y = rr - r_hat
+            self.nis = y * y / (np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2)
             if self.gating:
-                s_diag = np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2
-                used = y * y <= self.gate1 * s_diag
+                used = self.nis <= self.gate1
             hs.append(h[used])
             ys.append(y[used])
             rv.append(np.full(int(used.sum()), self.sigma_r2))
@@ -241,9 +241,11 @@ class ErrorStateEkf(StreamingFilter):
         self.ba = self.ba + dx[BA]
 
     def _inflate(self) -> None:
-        self.P[P_, P_] += np.eye(3) * 1.0
-        self.P[V_, V_] += np.eye(3) * 0.25
-        self.P[8, 8] += 0.1
+        """Lock-out recovery: +0.5 m std on position (horizontal only when planar),
+        +0.3 m/s on velocity, +0.2 rad on yaw."""
+        self.P[P_, P_] += np.diag([0.25, 0.25, 0.0 if self.planar else 0.25])
+        self.P[V_, V_] += np.eye(3) * 0.1
+        self.P[8, 8] += 0.05
 
     def _pose(self) -> tuple[F64, F64]:
         return self.p.copy(), quat_xyzw_from_matrix(self.R)
@@ -328,9 +330,9 @@ class UnicycleEkf(StreamingFilter):
             h = np.stack([u[:, 0], u[:, 1],
                           -u[:, 0] * (oy + ddy) + u[:, 1] * (ox + ddx)], axis=1)
             y = rr - r_hat
+            self.nis = y * y / (np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2)
             if self.gating:
-                s_diag = np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2
-                used = y * y <= self.gate1 * s_diag
+                used = self.nis <= self.gate1
             if np.any(used):
                 dx0, self.P, self.S, self.K = joseph_update(
                     self.P, h[used], np.full(int(used.sum()), self.sigma_r2), y[used]
@@ -346,9 +348,10 @@ class UnicycleEkf(StreamingFilter):
         return used
 
     def _inflate(self) -> None:
-        self.P[0, 0] += 1.0
-        self.P[1, 1] += 1.0
-        self.P[2, 2] += 0.1
+        """Lock-out recovery: +0.5 m std on x, y and +0.2 rad on yaw."""
+        self.P[0, 0] += 0.25
+        self.P[1, 1] += 0.25
+        self.P[2, 2] += 0.05
 
     def _pose(self) -> tuple[F64, F64]:
         return np.array([self.x[0], self.x[1], self.z0]), quat_xyzw_from_yaw(float(self.x[2]))

@@ -1,0 +1,214 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Tests of the tightly coupled error-state EKF baseline (`uwbfuse.filters.ekf`).
+
+Simulated logs with known truth (`uwbfuse.sim`); tolerances are the measured figures with
+margin (see the comments). LOS = the scenario without obstacles and gross outliers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from uwbfuse.config import Config
+from uwbfuse.errors import EstimatorError
+from uwbfuse.estimator import Method, output_epochs
+from uwbfuse.eval.evaluate import evaluate
+from uwbfuse.filters import ekf
+from uwbfuse.filters.models import Prefix, mechanise, so3_exp, so3_log
+from uwbfuse.pipeline import estimate, sensor_streams
+from uwbfuse.sim.scenarios import get_scenario
+from uwbfuse.sim.simulator import simulate, simulate_with_truth
+from uwbfuse.streams import SensorLog
+
+LOS = {"boxes": (), "outlier_prob": 0.0}
+COMBOS = {"imu+wheel": (), "imu": ("wheel",), "wheel": ("imu",)}
+
+
+def without(log: SensorLog, drop: tuple[str, ...]) -> SensorLog:
+    """The log with the named streams ('imu', 'wheel') removed."""
+    return SensorLog(
+        imu=None if "imu" in drop else log.imu,
+        wheel=None if "wheel" in drop else log.wheel,
+        ranges=log.ranges, anchors=log.anchors, ground_truth=log.ground_truth,
+        source="sim",
+    )
+
+
+def drive(est: ekf.ErrorStateEkf | ekf.UnicycleEkf, log: SensorLog, rate_hz: float = 10.0):
+    """Run the streaming loop; return stamps (N,), positions (N,3), covariances (N,3,3)."""
+    epochs = output_epochs(log, rate_hz)
+    cols = []
+    if log.imu is not None:
+        cols.append((est.add_imu, (log.imu.t_ns, log.imu.gyro, log.imu.accel)))
+    if log.wheel is not None:
+        cols.append((est.add_wheel, (log.wheel.t_ns, log.wheel.v, log.wheel.omega)))
+    cols.append((est.add_ranges, (log.ranges.t_ns, log.ranges.anchor, log.ranges.range)))
+    ends = [np.searchsorted(c[0], epochs, side="right") for _, c in cols]
+    starts = [0] * len(cols)
+    t, p, cov = [], [], []
+    for k, te in enumerate(epochs):
+        for i, (add, c) in enumerate(cols):
+            e = int(ends[i][k])
+            if e > starts[i]:
+                add(*(x[starts[i] : e] for x in c))
+                starts[i] = e
+        est.step(int(te))
+        pose = est.estimate()
+        if pose is not None:
+            t.append(pose.t_ns)
+            p.append(pose.position)
+            cov.append(est.position_covariance())
+    return np.array(t), np.array(p), np.array(cov)
+
+
+def test_prefix_transition_matches_finite_differences() -> None:
+    """Test that the closed-form block transition equals the numerical Jacobian."""
+    rng = np.random.default_rng(1)
+    n = 30
+    gyro = rng.normal(size=(n, 3)) * 0.5
+    accel = rng.normal(size=(n, 3)) + np.array([0.0, 0.0, 9.81])
+    dt = np.full(n, 0.005)
+    r0 = so3_exp(rng.normal(size=3) * 0.3)
+    v0, p0 = rng.normal(size=3), rng.normal(size=3)
+    bg, ba = rng.normal(size=3) * 0.01, rng.normal(size=3) * 0.1
+
+    def run(dx: np.ndarray):
+        rs, v, p, s = mechanise(
+            (so3_exp(dx[6:9]) @ r0)[None], (v0 + dx[3:6])[None], (p0 + dx[0:3])[None],
+            (bg + dx[9:12])[None], (ba + dx[12:15])[None], gyro, accel, dt, 9.81,
+        )
+        return rs[0], v[0], p[0], s[0]
+
+    rs, v, p, s = run(np.zeros(15))
+    pre = Prefix.build(rs[:-1], s, dt)
+    for k in (7, n):
+        jac = np.eye(15)
+        for i in range(15):
+            dx = np.zeros(15)
+            dx[i] = 1e-6
+            r2, v2, p2, _ = run(dx)
+            jac[0:3, i] = (p2[k] - p[k]) / 1e-6
+            jac[3:6, i] = (v2[k] - v[k]) / 1e-6
+            jac[6:9, i] = so3_log(r2[k] @ rs[k].T) / 1e-6
+        np.testing.assert_allclose(pre.phi(k), jac, atol=1e-4)
+
+
+@pytest.mark.parametrize("combo", list(COMBOS))
+def test_accuracy_los_warehouse(combo: str) -> None:
+    """Test that the EKF tracks a LOS warehouse run with each sensor combination."""
+    log = without(simulate("warehouse", 60.0, 0, **LOS), COMBOS[combo])
+    res = estimate(log, Method.EKF, Config())
+    ev = evaluate(res.trajectory, log.ground_truth, max_dt=0.01)
+    # Measured (seeds 0-2): 2-D ATE RMSE 0.014-0.033 m with wheels+IMU, 0.03-0.04 m
+    # IMU-only, ~0.02 m wheels-only; max below 0.1 m.
+    assert ev.ate_2d.rmse < 0.07
+    assert ev.ate_2d.max < 0.25
+    assert ev.coverage > 0.75
+    assert res.report["mode"] == combo
+
+
+def test_accuracy_room_default() -> None:
+    """Test the EKF on the paper's 6 m x 5 m room with its NLOS cabinet (default scenario)."""
+    log = simulate("room", 90.0, 0)
+    res = estimate(log, Method.EKF, Config())
+    ev = evaluate(res.trajectory, log.ground_truth, max_dt=0.01)
+    # Measured: 2-D ATE RMSE 0.044 m, max 0.14 m (NLOS cabinet, 0.1 m/s).
+    assert ev.ate_2d.rmse < 0.08
+    assert ev.ate_2d.max < 0.25
+
+
+def test_nees_consistent_on_los_log() -> None:
+    """Test that the position NEES averaged over LOS runs lies in the chi-square 95% interval.
+
+    The filter is given the simulator's noise figures (UWB LOS sigma, wheel noise and IMU
+    biases); wheel scale errors and slip are off so the model matches the data. NEES
+    samples of one run are strongly correlated in time, so the interval uses the effective
+    number of independent samples n_eff = n / (1 + 2 sum rho_k) from the NEES series'
+    autocorrelation (summed to its first zero crossing), pooled over the runs.
+    """
+    sim = {**LOS, "wheel_scale_sigma": 0.0, "slip_rate": 0.0}
+    sc = get_scenario("warehouse")
+    cfg = Config()
+    cfg.uwb.sigma = sc.los_sigma
+    cfg.wheel.sigma_v = sc.wheel_sigma_v
+    cfg.wheel.sigma_lateral = 0.003
+    cfg.imu.accel_bias_random_walk = sc.accel_bias_rw
+    cfg.imu.gyro_bias_random_walk = sc.gyro_bias_rw
+    cfg.imu.accel_bias_sigma = sc.accel_bias_sigma
+    cfg.imu.gyro_bias_sigma = sc.gyro_bias_sigma
+    total, n_eff_total, n_total = 0.0, 0.0, 0
+    for seed in (0, 1):
+        res = simulate_with_truth("warehouse", 90.0, seed, **sim)
+        log = res.log
+        est = ekf.make_filter(cfg, log.anchors, sensor_streams(log))
+        t, p, cov = drive(est, log)
+        gt = log.ground_truth
+        e = p - gt.position[np.searchsorted(gt.t_ns, t)]
+        nees = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
+        x = nees - nees.mean()
+        ac = np.correlate(x, x, "full")[len(x) - 1 :] / (x @ x)
+        first_neg = int(np.argmax(ac <= 0.0))
+        n_eff = len(x) / (1.0 + 2.0 * ac[1:first_neg].sum())
+        total += nees.sum()
+        n_total += len(nees)
+        n_eff_total += n_eff
+    anees = total / n_total
+    lo, hi = chi2.ppf([0.025, 0.975], 3 * n_eff_total) / n_eff_total
+    # Measured: ANEES 1.7-2.5 per run (the filter is slightly conservative with wheels).
+    assert lo <= anees <= hi, (anees, lo, hi, n_eff_total)
+
+
+@pytest.mark.parametrize("method", [Method.EKF, Method.UKF])
+def test_gating_rejects_gross_outliers(method: Method) -> None:
+    """Test that the chi-square gate rejects the gross outliers and keeps the accuracy."""
+    sim = {"boxes": (), "outlier_prob": 0.05, "outlier_range": (2.0, 5.0)}
+    res = simulate_with_truth("warehouse", 60.0, 0, **sim)
+    log = res.log
+    gated = estimate(log, method, Config())
+    ev = evaluate(gated.trajectory, log.ground_truth, max_dt=0.01)
+    after = log.ranges.t_ns > gated.report["initialised_at_ns"]
+    n_out = int((res.outlier & after).sum())
+    n_gated = sum(gated.report["ranges_gated"].values())
+    assert set(gated.report["ranges_gated"]) <= set(log.anchors.ids)
+    # Measured: 95 of 95 outliers after the start gated, no LOS range gated, RMSE 0.015 m.
+    assert 0.95 * n_out <= n_gated <= n_out + 5
+    assert ev.ate_2d.rmse < 0.05
+    cfg = Config()
+    cfg.ekf.gating = False
+    raw = estimate(log, method, cfg)
+    ev_raw = evaluate(raw.trajectory, log.ground_truth, max_dt=0.01)
+    assert sum(raw.report["ranges_gated"].values()) == 0
+    # Measured without gating: RMSE 0.54 m, max 3.2 m.
+    assert ev_raw.ate_2d.rmse > 5 * ev.ate_2d.rmse
+
+
+def test_moving_start() -> None:
+    """Test that the EKF starts and tracks when the log begins with the vehicle moving."""
+    log = simulate("warehouse", 60.0, 1, still_start_s=0.0, **LOS)
+    res = estimate(log, Method.EKF, Config())
+    ev = evaluate(res.trajectory, log.ground_truth, max_dt=0.01)
+    assert ev.ate_2d.rmse < 0.1
+    assert ev.coverage > 0.7
+
+
+def test_estimate_is_causal_and_at_step_time() -> None:
+    """Test that estimate() is None before the start and stamped at the step time after."""
+    log = simulate("warehouse", 20.0, 0, **LOS)
+    est = ekf.make_filter(Config(), log.anchors, sensor_streams(log))
+    assert est.estimate() is None
+    t, _, _ = drive(est, log)
+    epochs = output_epochs(log, 10.0)
+    assert np.all(np.isin(t, epochs))
+    assert len(t) > 50
+    assert est.finish() is None
+
+
+def test_needs_anchors_and_a_process_input() -> None:
+    """Test the one-line errors for a log without anchors or without IMU and wheels."""
+    log = simulate("warehouse", 5.0, 0)
+    with pytest.raises(EstimatorError, match="anchor"):
+        ekf.make_filter(Config(), None, frozenset({"imu", "uwb"}))
+    with pytest.raises(EstimatorError, match="IMU or wheel"):
+        ekf.make_filter(Config(), log.anchors, frozenset({"uwb"}))
