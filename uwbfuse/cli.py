@@ -99,8 +99,12 @@ def _cmd_dump_config(args: argparse.Namespace) -> int:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from uwbfuse.compare import compare_log
 
-    compare_log(args.log, methods=args.methods, config_path=args.config, out_dir=args.out)
-    return 0
+    result = compare_log(
+        args.log, methods=args.methods, config_path=args.config, out_dir=args.out
+    )
+    print(result.markdown(), end="")
+    print(f"wrote {len(result.files)} files to {result.out_dir}/")
+    return 0 if any(r.status == "ok" for r in result.rows) else 2
 
 
 def _quiet_dask(args: argparse.Namespace) -> None:
