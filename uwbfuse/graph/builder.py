@@ -26,9 +26,16 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.graph import imu as imu_mod
-from uwbfuse.graph.keys import B, D, L, V, X
+from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
-from uwbfuse.graph.uwb import MixtureParams, hmm_filter, range_factor
+from uwbfuse.graph.uwb import (
+    MIN_WEIGHT,
+    NlosModel,
+    hmm_filter,
+    los_bias_key,
+    nlos_state_factors,
+    range_factor,
+)
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
@@ -70,15 +77,28 @@ class RangeRecords:
     tag_in_kf: list[np.ndarray] = field(default_factory=list)
     g_online: list[np.ndarray] = field(default_factory=list)
     w_online: list[np.ndarray] = field(default_factory=list)
+    r_online: list[np.ndarray] = field(default_factory=list)
 
     def arrays(self) -> dict[str, np.ndarray]:
         if not self.k:
             return {"k": np.zeros(0, np.int64), "anchor": np.zeros(0, np.int64),
                     "z": np.zeros(0), "t_ns": np.zeros(0, np.int64),
                     "tag_in_kf": np.zeros((0, 3)), "g_online": np.zeros(0),
-                    "w_online": np.zeros(0)}
+                    "w_online": np.zeros(0), "r_online": np.zeros(0)}
         return {name: np.concatenate(getattr(self, name)) for name in
-                ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online")}
+                ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online", "r_online")}
+
+
+def planar_height(anchors: AnchorMap, z_start: float) -> float:
+    """Base height (m) held by the planar constraint.
+
+    When the anchors are (nearly) coplanar the ranges barely observe height, so a start
+    height solved from them is unreliable: the floor is then taken at the map frame's z = 0
+    (anchor heights are measured from the floor). With anchors spread over at least 1 m of
+    height the start height is used.
+    """
+    z = anchors.positions[:, 2]
+    return z_start if float(z.max() - z.min()) >= 1.0 else 0.0
 
 
 class GraphBuilder:
@@ -109,14 +129,17 @@ class GraphBuilder:
         self.tag = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
-        self.mixture = MixtureParams.from_config(config.uwb, self.g)
+        self.mixture = NlosModel.from_config(config.uwb, self.g)
         self.mixture_prior = copy.copy(self.mixture)
-        if not self.nlos:
-            self.mixture.p_nlos = 1e-6
         m = len(anchors)
         self.anchor_p = np.full(m, self.mixture.p_nlos)
         self.range_bias = np.zeros(m)
-        self.z0 = float(start.position[2])
+        self.seg_ns = round(self.mixture.segment_s * NS_PER_S)
+        self.e_seg = np.full(m, -1, dtype=np.int64)  # newest NLOS state segment per anchor
+        self.e_est = np.zeros(m)  # its estimate (m)
+        self.e_stamp = np.zeros(m)  # its smoother timestamp (s since t0)
+        self.e_new: list[tuple[int, int]] = []  # (anchor, segment) created since last read
+        self.z0 = planar_height(anchors, float(start.position[2]))
         self.pim_params = (
             imu_mod.preintegration_params(config.imu, config.extrinsics) if self.has_imu else None
         )
@@ -221,9 +244,13 @@ class GraphBuilder:
         self.k = 0
         st = self.start
         tilt = 0.05 if self.has_imu else 0.02
-        pos_s = max(float(st.position_sigma), 0.05)
-        yaw_s = max(float(st.yaw_sigma), 0.02)
+        # the start comes from a few seconds of data: widen its stated uncertainty
+        pos_s = max(2.0 * float(st.position_sigma), 0.1)
+        yaw_s = min(max(3.0 * float(st.yaw_sigma), 0.05), np.pi)
         z_s = self.g.planar_sigma_z if self.planar else max(pos_s, 0.3)
+        if self.planar:
+            t = self.pose.translation()
+            self.pose = gtsam.Pose3(self.pose.rotation(), np.array([t[0], t[1], self.z0]))
         inc.graph.add(gtsam.PriorFactorPose3(
             X(0), self.pose, diagonal(pose_sigmas((tilt, tilt, yaw_s), (pos_s, pos_s, z_s)))))
         inc.values.insert(X(0), self.pose)
@@ -243,9 +270,14 @@ class GraphBuilder:
             inc.graph.add(gtsam.PriorFactorPoint3(L(a), p, diagonal([ANCHOR_SIGMA] * 3)))
             inc.values.insert(L(a), p)
             if self.with_bias:
-                inc.graph.add(gtsam.PriorFactorDouble(
-                    D(a), 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
+                inc.graph.add(gtsam.BetweenFactorDouble(
+                    C, D(a), 0.0,
+                    gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_anchor_sigma)))
                 inc.values.insert(D(a), 0.0)
+        if self.with_bias:
+            inc.graph.add(gtsam.PriorFactorDouble(
+                C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
+            inc.values.insert(C, 0.0)
         for key in keys:
             inc.stamps[key] = 0.0
         self._stamp_globals(inc, 0.0)
@@ -258,6 +290,8 @@ class GraphBuilder:
             inc.stamps[L(a)] = s
             if self.with_bias:
                 inc.stamps[D(a)] = s
+        if self.with_bias:
+            inc.stamps[C] = s
 
     def next(self) -> Increment:
         """Build keyframe k+1 (the data up to its time must have been added)."""
@@ -320,25 +354,36 @@ class GraphBuilder:
         tag_kf = np.array([d.transformFrom(self.tag) for d in deltas])
         p_world = np.array([pose_a.transformFrom(p) for p in tag_kf])
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
-        r = z - pred - (self.range_bias[a] if self.with_bias else 0.0)
+        d_a = self.range_bias[a] if self.with_bias else np.zeros(len(a))
+        r_los = z - pred - d_a
         mix = self.mixture
+        seg = (t - self.t0) // self.seg_ns
+        g = np.zeros(len(t))
         if self.nlos:
-            ll_l, ll_n = mix.log_likelihoods(r)
-            g = np.empty(len(r))
+            e_pred, e_var = self._predict_nlos_state(a, seg)
+            r_nlos = z - pred - e_pred
+            ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
             for anc in np.unique(a):
                 sel = np.flatnonzero(a == anc)
                 g[sel], self.anchor_p[anc] = hmm_filter(
-                    ll_l[sel], ll_n[sel], self.g.nlos_switch, mix.p_nlos, self.anchor_p[anc])
-            shift, sig = mix.effective(g)
-        else:
-            g = np.zeros(len(r))
-            shift, sig = np.zeros(len(r)), np.full(len(r), self.cfg.uwb.sigma)
+                    ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc])
+            self._online_m_step(r_los, r_nlos, g)
+        sig_l = mix.sigma_los if self.nlos else self.cfg.uwb.sigma
+        uwb = self.cfg.uwb
         for j in range(len(t)):
-            inc.graph.add(range_factor(ka, int(a[j]), float(z[j] - shift[j]), float(sig[j]),
-                                       gtsam.Pose3(gtsam.Rot3(), tag_kf[j]), self.cfg.uwb,
-                                       self.with_bias))
-        w = robust_weight(self.cfg.uwb.robust_kernel, self.cfg.uwb.kernel_threshold,
-                          (r - shift) / sig)
+            aj = int(a[j])
+            t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf[j])
+            w_l = 1.0 - g[j]
+            if w_l > MIN_WEIGHT:
+                bkey = los_bias_key(aj, self.with_bias, float(g[j]))
+                zl = float(z[j]) if bkey is not None or not self.with_bias else float(
+                    z[j] - self.range_bias[aj])
+                inc.graph.add(range_factor(ka, aj, zl, sig_l / np.sqrt(w_l), t_tag, uwb, bkey))
+            if g[j] > MIN_WEIGHT:
+                key = self._nlos_state(inc, aj, int(seg[j]), float(e_pred[j]))
+                inc.graph.add(range_factor(ka, aj, float(z[j]), mix.sigma_nlos / np.sqrt(g[j]),
+                                           t_tag, uwb, key))
+        w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
         rec = self.records
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
@@ -347,21 +392,55 @@ class GraphBuilder:
         rec.tag_in_kf.append(tag_kf)
         rec.g_online.append(g)
         rec.w_online.append(w)
-        if self.nlos:
-            self._online_m_step(r, g)
+        rec.r_online.append(r_los)
 
-    def _online_m_step(self, r: np.ndarray, g: np.ndarray) -> None:
-        """Adapt the mixture to the last few thousand residuals (prior: the config)."""
-        self._resid.append(r)
+    def _predict_nlos_state(self, a: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (m) and variance (m^2) of E(a, s) for each range, from the newest estimates."""
+        mix = self.mixture
+        d = self.range_bias[a] if self.with_bias else np.zeros(len(a))
+        base = d + mix.mu_nlos
+        last = self.e_seg[a]
+        gap = np.maximum(seg - last, 0).astype(np.float64)
+        phi = np.exp(-gap * mix.segment_s / mix.tau_s)
+        known = last >= 0
+        mean = np.where(known, base + phi * (self.e_est[a] - base), base)
+        var = np.where(known, mix.sigma_slow**2 * (1.0 - phi * phi) + 0.03**2,
+                       mix.sigma_slow**2)
+        return mean, var
+
+    def _nlos_state(self, inc: Increment, anchor: int, seg: int, guess: float) -> int:
+        """Key of E(anchor, seg), creating it (value, priors, stamp) when new."""
+        key = nlos_key(anchor, seg)
+        now = self.stamp(self.k + 1)
+        if self.e_seg[anchor] == seg:
+            inc.stamps[key] = now
+            self.e_stamp[anchor] = now
+            return key
+        prev = None
+        # link only while the previous state is surely still inside the smoother window
+        if self.e_seg[anchor] >= 0 and self.e_stamp[anchor] > now - self.g.lag + 1.0:
+            prev = nlos_key(anchor, int(self.e_seg[anchor]))
+        nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), prev, self.mixture)
+        inc.values.insert(key, guess)
+        inc.stamps[key] = now
+        self.e_stamp[anchor] = now
+        self.e_seg[anchor] = seg
+        self.e_est[anchor] = guess
+        self.e_new.append((anchor, seg))
+        return key
+
+    def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:
+        """Adapt the noise model to the last few thousand ranges (prior: the config)."""
+        self._resid.append(np.stack([r_los, r_nlos], axis=1))
         self._resp.append(g)
-        self._since_mstep += len(r)
+        self._since_mstep += len(g)
         if self._since_mstep < 200:
             return
         rr = np.concatenate(self._resid)[-3000:]
         gg = np.concatenate(self._resp)[-3000:]
         self._resid, self._resp = [rr], [gg]
         self._since_mstep = 0
-        self.mixture.m_step(rr, gg, self.mixture_prior, n0=100.0)
+        self.mixture.m_step(rr[:, 0], rr[:, 1], gg, self.mixture_prior, n0=200.0)
 
     def _record(self, inc: Increment) -> None:
         if self.record and self.full_graph is not None and self.full_values is not None:

@@ -36,7 +36,7 @@ from uwbfuse.estimator import Estimator, Method, PoseEstimate
 from uwbfuse.graph import offline
 from uwbfuse.graph.builder import GraphBuilder, Increment
 from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
-from uwbfuse.graph.keys import B, D, L, V, X
+from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.wheel import WheelTrack
@@ -170,10 +170,22 @@ class GraphEstimator:
                 b.bias = sm.bias(k)
             if b.with_bias:
                 b.range_bias = np.array([sm.range_bias(a) for a in range(len(self.anchors))])
+            self._read_nlos_states(sm, b)
             self._save_leaving(sm, b)
         except RuntimeError as exc:
             self._reanchor(str(exc))
         self._update_latency.append(time.perf_counter() - tic)
+
+    def _read_nlos_states(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """Refresh the newest NLOS state estimate of each anchor still in the window."""
+        horizon = b.stamp(b.k) - self.cfg.graph.lag + 0.5
+        for a in np.flatnonzero(b.e_seg >= 0):
+            if b.e_stamp[a] < horizon:
+                continue
+            try:
+                b.e_est[a] = sm.double(nlos_key(int(a), int(b.e_seg[a])))
+            except (RuntimeError, IndexError):
+                b.e_seg[a] = -1
 
     def _save_leaving(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """Store the estimates of keyframes about to be marginalised."""
@@ -189,7 +201,7 @@ class GraphEstimator:
             if b.has_imu:
                 self._kf_vel[k] = sm.velocity(k)
                 self._kf_bias[k] = sm.bias(k)
-        except RuntimeError:
+        except (RuntimeError, IndexError):
             pass  # not in this smoother (re-anchored): keep the earlier estimate if any
 
     def _reanchor(self, reason: str) -> None:
@@ -203,6 +215,7 @@ class GraphEstimator:
         for kk in range(self._saved_upto, k + 1):
             self._kf_pose.setdefault(kk, b.pose if kk == k else self._kf_pose.get(kk, b.pose))
         self._saved_upto = k + 1
+        b.e_seg[:] = -1
         self.smoother = OnlineSmoother(self.cfg.graph.lag)
         inc = Increment()
         s = b.stamp(k)
@@ -228,6 +241,11 @@ class GraphEstimator:
                     D(a), float(b.range_bias[a]), gtsam.noiseModel.Isotropic.Sigma(1, 0.05)))
                 inc.values.insert(D(a), float(b.range_bias[a]))
                 inc.stamps[D(a)] = s
+        if b.with_bias:
+            c = float(np.mean(b.range_bias))
+            inc.graph.add(gtsam.PriorFactorDouble(C, c, gtsam.noiseModel.Isotropic.Sigma(1, 0.05)))
+            inc.values.insert(C, c)
+            inc.stamps[C] = s
         try:
             self.smoother.update(inc)
         except RuntimeError as exc:  # pragma: no cover - priors on every key: cannot fail
@@ -287,9 +305,11 @@ class GraphEstimator:
             initial.insert(L(a), self.anchors.positions[a])
             if b.with_bias:
                 initial.insert(D(a), float(b.range_bias[a]))
+        if b.with_bias:
+            initial.insert(C, float(np.mean(b.range_bias)))
         rec = b.records.arrays()
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
-                                    self.anchors.positions, n, b.mixture)
+                                    self.anchors.positions, n, b.mixture, b.t0)
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""

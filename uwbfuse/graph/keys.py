@@ -6,10 +6,23 @@
 - B(k): IMU bias (accelerometer m/s^2, gyroscope rad/s) at keyframe k (IMU logs).
 - L(a): Point3 of anchor a in the map frame, metres (held by a tight prior).
 - D(a): constant range bias of anchor a, metres (measured range minus true range).
+- C: range bias common to all anchors (the tag's antenna delay), metres; D(a) = C + d_a.
+- E(a, s) = `nlos_key(a, s)`: range bias of anchor a while in NLOS during NLOS segment s
+  (its LOS offset plus the slowly varying NLOS excess), metres.
 """
 
 from __future__ import annotations
 
+import gtsam
 from gtsam.symbol_shorthand import B, D, L, V, X
 
-__all__ = ["B", "D", "L", "V", "X"]
+__all__ = ["B", "C", "D", "L", "V", "X", "nlos_key"]
+
+C = gtsam.symbol("c", 0)
+
+_MAX_ANCHORS = 4096
+
+
+def nlos_key(anchor: int, segment: int) -> int:
+    """Key of the NLOS bias state of `anchor` in time segment `segment` (both >= 0)."""
+    return gtsam.symbol("e", segment * _MAX_ANCHORS + anchor)

@@ -3,9 +3,10 @@
 
 Starting from the online pass's keyframe estimates, each round (1) computes every range
 residual at the current estimate (vectorised numpy, no factor calls), (2) E-step: per-anchor
-forward-backward LOS/NLOS responsibilities, (3) M-step: mixture parameters, (4) rebuilds the
-range factors with the expected (single-Gaussian) likelihood and runs LM from the current
-values. Rounds stop early when the responsibilities settle.
+forward-backward LOS/NLOS responsibilities, (3) M-step: noise parameters, (4) rebuilds the
+range factors (LOS part on D(a), NLOS part on the anchor's NLOS state E(a, s), weighted by
+the responsibilities; see `uwb`) and runs LM from the current values. Rounds stop early when
+the responsibilities settle.
 """
 
 from __future__ import annotations
@@ -18,9 +19,17 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.graph.keys import D, X
+from uwbfuse.graph.keys import D, X, nlos_key
 from uwbfuse.graph.noise import robust_weight
-from uwbfuse.graph.uwb import MixtureParams, hmm_smooth, range_factor
+from uwbfuse.graph.uwb import (
+    MIN_WEIGHT,
+    NlosModel,
+    hmm_smooth,
+    los_bias_key,
+    nlos_state_factors,
+    range_factor,
+)
+from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +42,7 @@ class BatchResult:
     nlos_prob: np.ndarray
     weight: np.ndarray
     residual: np.ndarray
-    mixture: MixtureParams
+    mixture: NlosModel
     rounds: int
     lm_iterations: int
 
@@ -49,31 +58,35 @@ def keyframe_arrays(values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.nda
     return rot, trans
 
 
-def residuals(
-    values: gtsam.Values, rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int,
-    with_bias: bool,
+def predicted_ranges(
+    values: gtsam.Values, rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int
 ) -> np.ndarray:
-    """measured - predicted - bias (m) for every recorded range."""
+    """Tag-to-anchor distance (m) of every recorded range at `values` (no bias)."""
     rot, trans = keyframe_arrays(values, n_kf)
     k = rec["k"]
     p = np.einsum("nij,nj->ni", rot[k], rec["tag_in_kf"]) + trans[k]
-    pred = np.linalg.norm(p - anchors[rec["anchor"]], axis=1)
-    r = rec["z"] - pred
-    if with_bias:
-        b = np.array([values.atDouble(D(a)) for a in range(len(anchors))])
-        r = r - b[rec["anchor"]]
-    return r
+    return np.linalg.norm(p - anchors[rec["anchor"]], axis=1)
 
 
-def _responsibilities(
-    r: np.ndarray, anchor: np.ndarray, mix: MixtureParams, p_switch: float
-) -> np.ndarray:
-    ll_l, ll_n = mix.log_likelihoods(r)
-    g = np.zeros(len(r))
-    for a in np.unique(anchor):
-        sel = np.flatnonzero(anchor == a)  # records are time-ordered per anchor
-        g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], p_switch, mix.p_nlos)
-    return g
+class _NlosStates:
+    """The (anchor, segment) NLOS states of the whole log and their chain structure."""
+
+    def __init__(self, anchor: np.ndarray, seg: np.ndarray, model: NlosModel) -> None:
+        pairs = np.unique(np.stack([anchor, seg], axis=1), axis=0)  # sorted by anchor, seg
+        self.anchor = pairs[:, 0]
+        self.seg = pairs[:, 1]
+        self.keys = [nlos_key(int(a), int(s)) for a, s in pairs]
+        same = np.concatenate([[False], self.anchor[1:] == self.anchor[:-1]])
+        gap = np.concatenate([[0], np.diff(self.seg)])
+        # chain to the previous state of the anchor unless the gap decorrelates it
+        max_gap = max(int(3.0 * model.tau_s / model.segment_s), 1)
+        self.prev = np.where(same & (gap <= max_gap), np.arange(len(pairs)) - 1, -1)
+        code = self.anchor.astype(np.int64) * (1 << 40) + self.seg
+        self._code = code
+        self.values = np.zeros(len(pairs))
+
+    def index(self, anchor: np.ndarray, seg: np.ndarray) -> np.ndarray:
+        return np.searchsorted(self._code, anchor.astype(np.int64) * (1 << 40) + seg)
 
 
 def solve(
@@ -83,56 +96,121 @@ def solve(
     rec: dict[str, np.ndarray],
     anchors: np.ndarray,
     n_kf: int,
-    mixture: MixtureParams,
+    model: NlosModel,
+    t0_ns: int,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring)."""
     g_cfg = cfg.graph
+    uwb = cfg.uwb
     with_bias = g_cfg.estimate_range_bias
-    prior = MixtureParams.from_config(cfg.uwb, g_cfg)
-    mix = copy.copy(mixture)
-    values = initial
-    rounds = max(g_cfg.em_iterations, 0) + 1 if g_cfg.nlos else 1
-    g_prev = None
-    total_it = 0
-    order = np.lexsort((rec["t_ns"], rec["anchor"]))
+    prior = NlosModel.from_config(uwb, g_cfg)
+    mix = copy.copy(model)
+    values = gtsam.Values(initial)
+    n_anchor = len(anchors)
+    a_r = rec["anchor"].astype(np.int64)
+    seg_ns = round(mix.segment_s * NS_PER_S)
+    seg_r = (rec["t_ns"] - t0_ns) // seg_ns
+    order = np.lexsort((rec["t_ns"], a_r))
     inv = np.empty_like(order)
     inv[order] = np.arange(len(order))
-    r = residuals(values, rec, anchors, n_kf, with_bias)
-    g = np.zeros(len(r))
+    states = _NlosStates(a_r, seg_r, mix) if g_cfg.nlos else None
+    st_idx = states.index(a_r, seg_r) if states is not None else None
+
+    def bias_values(vals: gtsam.Values) -> np.ndarray:
+        if not with_bias:
+            return np.zeros(n_anchor)
+        return np.array([vals.atDouble(D(a)) for a in range(n_anchor)])
+
+    h = predicted_ranges(values, rec, anchors, n_kf)
+    r_los = rec["z"] - h - bias_values(values)[a_r]
+    g = rec["g_online"].copy() if g_cfg.nlos else np.zeros(len(h))
+    if states is not None and st_idx is not None:
+        # initial NLOS states: responsibility-weighted mean excess of their ranges
+        d = bias_values(values)
+        num = np.bincount(st_idx, weights=g * r_los, minlength=len(states.keys))
+        den = np.bincount(st_idx, weights=g, minlength=len(states.keys))
+        states.values = d[states.anchor] + np.where(
+            den > 0.5, np.clip(num / np.maximum(den, 1e-9), 0.0, 1.5), mix.mu_nlos)
+    # EM runs with the LOS biases D(a) frozen at their prior mean (0): left free, a mostly
+    # blocked anchor trades its NLOS excess against D(a) and EM settles in a biased basin.
+    # One final LM round with the last responsibilities then calibrates D(a) (and C).
+    freeze = with_bias and g_cfg.nlos
+    d0 = np.zeros(n_anchor) if freeze else bias_values(values)
+    if freeze:
+        for a in range(n_anchor):
+            values.update(D(a), 0.0)
+    rounds = max(g_cfg.em_iterations, 0) + 1 if g_cfg.nlos else 1
+    g_prev: np.ndarray | None = None
+    total_it = 0
     done = 0
-    for it in range(rounds):
-        if g_cfg.nlos:
-            gs = _responsibilities(r[order], rec["anchor"][order], mix, g_cfg.nlos_switch)
-            g = gs[inv]
-            mix.m_step(r, g, prior)
-            gs = _responsibilities(r[order], rec["anchor"][order], mix, g_cfg.nlos_switch)
-            g = gs[inv]
-            shift, sig = mix.effective(g)
-        else:
-            shift, sig = np.zeros(len(r)), np.full(len(r), cfg.uwb.sigma)
-        if g_prev is not None and np.max(np.abs(g - g_prev), initial=0.0) < 0.05:
-            break
-        g_prev = g
+    r_nlos = np.zeros(len(h))
+    sig_l = mix.sigma_los if g_cfg.nlos else uwb.sigma
+
+    def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool) -> gtsam.Values:
+        nonlocal total_it
         graph = gtsam.NonlinearFactorGraph(base_graph)
-        zc = rec["z"] - shift
-        for j in range(len(zc)):
-            graph.add(range_factor(int(rec["k"][j]), int(rec["anchor"][j]), float(zc[j]),
-                                   float(sig[j]), gtsam.Pose3(gtsam.Rot3(), rec["tag_in_kf"][j]),
-                                   cfg.uwb, with_bias))
+        if frozen:
+            tight = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)
+            for a in range(n_anchor):
+                graph.add(gtsam.PriorFactorDouble(D(a), float(d0[a]), tight))
+        if states is not None:
+            for i, key in enumerate(states.keys):
+                prev = states.keys[states.prev[i]] if states.prev[i] >= 0 else None
+                nlos_state_factors(graph, key, float(d0[states.anchor[i]]), prev, mix)
+                if vals.exists(key):
+                    vals.update(key, float(states.values[i]))
+                else:
+                    vals.insert(key, float(states.values[i]))
+        z = rec["z"]
+        tag = rec["tag_in_kf"]
+        kk = rec["k"]
+        for j in range(len(z)):
+            aj = int(a_r[j])
+            t_tag = gtsam.Pose3(gtsam.Rot3(), tag[j])
+            w_l = 1.0 - g[j]
+            if w_l > MIN_WEIGHT:
+                graph.add(range_factor(int(kk[j]), aj, float(z[j]), sig_l / np.sqrt(w_l), t_tag,
+                                       uwb, los_bias_key(aj, with_bias)))
+            if states is not None and st_idx is not None and g[j] > MIN_WEIGHT:
+                graph.add(range_factor(int(kk[j]), aj, float(z[j]),
+                                       mix.sigma_nlos / np.sqrt(g[j]), t_tag, uwb,
+                                       states.keys[st_idx[j]]))
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(g_cfg.lm_max_iterations)
         params.setRelativeErrorTol(1e-4)
         params.setAbsoluteErrorTol(1e-6)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        values = opt.optimize()
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
+        out = opt.optimize()
         total_it += opt.iterations()
+        log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
+                  opt.error(), mix)
+        return out
+
+    for it in range(rounds):
+        if states is not None and st_idx is not None:
+            r_nlos = rec["z"] - h - states.values[st_idx]
+            ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
+            a_sorted = a_r[order]
+            gs = np.empty(len(order))
+            ll_ls, ll_ns = ll_l[order], ll_n[order]
+            for a in np.unique(a_sorted):
+                sel = np.flatnonzero(a_sorted == a)
+                gs[sel] = hmm_smooth(ll_ls[sel], ll_ns[sel], mix.p_switch, mix.p_nlos)
+            g = gs[inv]
+            mix.m_step(r_los, r_nlos, g, prior)
+            sig_l = mix.sigma_los
+        if g_prev is not None and np.max(np.abs(g - g_prev), initial=0.0) < 0.05:
+            break
+        g_prev = g
+        values = lm_round(values, g, freeze)
         done = it + 1
-        log.debug("batch round %d: %d LM iterations, error %.3f, mixture %s",
-                  it, opt.iterations(), opt.error(), mix)
-        r = residuals(values, rec, anchors, n_kf, with_bias)
-    if g_cfg.nlos:
-        shift, sig = mix.effective(g)
-    else:
-        shift, sig = np.zeros(len(r)), np.full(len(r), cfg.uwb.sigma)
-    w = robust_weight(cfg.uwb.robust_kernel, cfg.uwb.kernel_threshold, (r - shift) / sig)
-    return BatchResult(values, g, w, r, mix, done, total_it)
+        h = predicted_ranges(values, rec, anchors, n_kf)
+        r_los = rec["z"] - h - bias_values(values)[a_r]
+        if states is not None:
+            states.values = np.array([values.atDouble(k) for k in states.keys])
+    if freeze:
+        values = lm_round(values, g, False)
+        h = predicted_ranges(values, rec, anchors, n_kf)
+        r_los = rec["z"] - h - bias_values(values)[a_r]
+    w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
+    return BatchResult(values, g, w, r_los, mix, done, total_it)

@@ -56,3 +56,6 @@ class OnlineSmoother:
 
     def range_bias(self, a: int) -> float:
         return float(self.smoother.calculateEstimateDouble(D(a)))
+
+    def double(self, key: int) -> float:
+        return float(self.smoother.calculateEstimateDouble(key))

@@ -1,106 +1,123 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""UWB range factors and the NLOS mixture model.
+"""UWB range factors and the NLOS model.
 
-Range model (metres): z = |p_tag - anchor| + b_a + e, with b_a the constant per-anchor
-bias (antenna delay; a variable D(a) with a prior when enabled) and e drawn from a
-two-component mixture: LOS N(0, sigma_los) or NLOS N(mu_nlos, sigma_nlos), mu_nlos > 0
-(the direct path is blocked, so NLOS ranges read long).
+Range model (metres): z = |p_tag - anchor| + b + e. While the anchor is in line of sight
+(LOS), b = D(a), the anchor's constant offset (antenna delay; a variable with a prior when
+`estimate_range_bias`), and e ~ N(0, sigma_los). While it is in NLOS, the direct path is
+blocked and the range reads long by a slowly varying excess: b = E(a, s), a per-anchor state
+per time segment s (`nlos_segment` seconds) that follows a Gauss-Markov process around
+D(a) + nlos_mean (std `nlos_slow_sigma`, correlation time `nlos_tau`), and e ~ N(0,
+nlos_sigma). All of it is native GTSAM: `RangeFactorWithTransformBias3D` with bias key D(a)
+or E(a, s), and `BetweenFactorDouble` links D -> E (mean reversion) and E(s-1) -> E(s)
+(random walk).
 
-The mixture is handled by expectation-maximisation with native factors only: given the
-responsibility g = P(NLOS | residual), the expected negative log-likelihood of one range is
-a single Gaussian with precision (1-g)/sigma_los^2 + g/sigma_nlos^2 and mean shift
-g*mu_nlos/sigma_nlos^2 / precision, so each range stays one `RangeFactorWithTransform(Bias)3D`
-whose measurement and sigma carry the E-step. The robust kernel (Huber by default) wraps
-that Gaussian and still bounds gross outliers. NLOS in buildings persists per anchor, so
-responsibilities use a two-state hidden Markov prior per anchor (forward filtering online,
-forward-backward in batch). The M-step re-estimates sigma_los, mu_nlos, sigma_nlos and the
-NLOS rate from the responsibilities (floored so the components stay distinct).
+Which component a range belongs to is hidden. Expectation-maximisation keeps the factors
+native: with responsibility g = P(NLOS | data), the expected negative log-likelihood is
+(1-g) r_los^2 / sigma_los^2 + g r_nlos^2 / sigma_nlos^2, i.e. a LOS factor with sigma
+sigma_los / sqrt(1-g) plus an NLOS factor with sigma sigma_nlos / sqrt(g) (either dropped
+when its weight is below 1 %). The robust kernel (Huber by default) wraps both and bounds
+gross outliers. NLOS persists, so g comes from a two-state hidden Markov chain per anchor
+(forward filtering online, forward-backward in batch). The M-step re-estimates sigma_los,
+sigma_nlos and the NLOS rate from the data.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
-from uwbfuse.config import GraphConfig, RobustKernel, UwbConfig
+from uwbfuse.config import GraphConfig, UwbConfig
 from uwbfuse.graph.keys import D, L, X
 from uwbfuse.graph.noise import range_noise
 
-_LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 SIGMA_LOS_MIN = 0.02
-SIGMA_NLOS_MIN = 0.05
-MU_NLOS_MIN = 0.08
-# gross-outlier floor of the likelihood: uniform over 20 m, probability 2 %
-_LOG_OUTLIER = np.log(0.02 / 20.0)
+SIGMA_NLOS_MIN = 0.03
+MIN_WEIGHT = 0.01  # component weights below this add no factor
+# gross-outlier floor of each component's likelihood: 2 % spread over 20 m
+_LOG_OUTLIER = math.log(0.02 / 20.0)
 
 
 @dataclass
-class MixtureParams:
-    """Range-error mixture: LOS N(0, sigma_los), NLOS N(mu_nlos, sigma_nlos), rate p_nlos."""
+class NlosModel:
+    """Range-error model (see the module docstring); lengths in metres, times in seconds."""
 
     sigma_los: float
-    mu_nlos: float
     sigma_nlos: float
+    mu_nlos: float
+    sigma_slow: float
+    tau_s: float
+    segment_s: float
     p_nlos: float
+    p_switch: float
 
     @classmethod
-    def from_config(cls, uwb: UwbConfig, graph: GraphConfig) -> MixtureParams:
-        return cls(uwb.sigma, graph.nlos_mean, graph.nlos_sigma, graph.nlos_rate)
+    def from_config(cls, uwb: UwbConfig, graph: GraphConfig) -> NlosModel:
+        return cls(uwb.sigma, graph.nlos_sigma, graph.nlos_mean, graph.nlos_slow_sigma,
+                   graph.nlos_tau, graph.nlos_segment, graph.nlos_rate, graph.nlos_switch)
 
-    def log_likelihoods(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """log p(r | LOS), log p(r | NLOS) for residuals r = measured - predicted (m)."""
-        ll_los = -0.5 * (r / self.sigma_los) ** 2 - np.log(self.sigma_los) - _LOG_SQRT_2PI
-        z = (r - self.mu_nlos) / self.sigma_nlos
-        ll_nlos = -0.5 * z * z - np.log(self.sigma_nlos) - _LOG_SQRT_2PI
-        return np.logaddexp(ll_los, _LOG_OUTLIER), np.logaddexp(ll_nlos, _LOG_OUTLIER)
+    @property
+    def chain_sigma(self) -> float:
+        """Std of the NLOS state's change over one segment (Gauss-Markov), m."""
+        phi = math.exp(-self.segment_s / self.tau_s)
+        return self.sigma_slow * math.sqrt(max(1.0 - phi * phi, 1e-6))
 
-    def effective(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Mean shift (m) and sigma (m) of the single Gaussian that stands for responsibility g."""
-        w_l = (1.0 - g) / self.sigma_los**2
-        w_n = g / self.sigma_nlos**2
-        lam = w_l + w_n
-        return w_n * self.mu_nlos / lam, 1.0 / np.sqrt(lam)
+    @property
+    def reversion_sigma(self) -> float:
+        """Std of the per-segment pull of a chained NLOS state towards D + mu, m."""
+        return self.sigma_slow * math.sqrt(2.0 * self.tau_s / self.segment_s)
 
-    def m_step(self, r: np.ndarray, g: np.ndarray, prior: MixtureParams, n0: float = 50.0) -> None:
-        """Re-estimate the parameters from residuals and responsibilities.
+    def log_likelihoods(
+        self, r_los: np.ndarray, r_nlos: np.ndarray, var_nlos: np.ndarray | float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """log p(z | LOS), log p(z | NLOS) from the two residuals (m) and the NLOS state var."""
+        s_l = self.sigma_los
+        ll_l = -0.5 * (r_los / s_l) ** 2 - math.log(s_l) - _LOG_SQRT_2PI
+        s_n = np.sqrt(self.sigma_nlos**2 + np.asarray(var_nlos))
+        ll_n = -0.5 * (r_nlos / s_n) ** 2 - np.log(s_n) - _LOG_SQRT_2PI
+        return np.logaddexp(ll_l, _LOG_OUTLIER), np.logaddexp(ll_n, _LOG_OUTLIER)
 
-        `prior` enters as n0 pseudo-observations per component, so short logs keep the
-        configured values and long ones follow the data. Gross residuals (> 1.5 m) are left
-        to the robust kernel and not used.
+    def m_step(
+        self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray, prior: NlosModel,
+        n0: float = 50.0,
+    ) -> None:
+        """Re-estimate sigma_los, sigma_nlos and p_nlos; the prior counts as n0 ranges.
+
+        Residuals beyond 1 m are gross outliers, left to the robust kernel.
         """
-        ok = np.abs(r) < 1.5
-        r, g = r[ok], g[ok]
-        if len(r) < 20:
+        ok = (np.abs(r_los) < 1.0) & (np.abs(r_nlos) < 1.0)
+        r_los, r_nlos, g = r_los[ok], r_nlos[ok], g[ok]
+        if len(g) < 20:
             return
         w_l, w_n = 1.0 - g, g
-        s_l = (np.sum(w_l * r * r) + n0 * prior.sigma_los**2) / (np.sum(w_l) + n0)
-        mu = (np.sum(w_n * r) + n0 * prior.mu_nlos) / (np.sum(w_n) + n0)
-        s_n = (np.sum(w_n * (r - mu) ** 2) + n0 * prior.sigma_nlos**2) / (np.sum(w_n) + n0)
-        self.sigma_los = max(float(np.sqrt(s_l)), SIGMA_LOS_MIN)
-        self.mu_nlos = max(float(mu), MU_NLOS_MIN)
-        self.sigma_nlos = max(float(np.sqrt(s_n)), SIGMA_NLOS_MIN)
-        p = (np.sum(w_n) + n0 * prior.p_nlos) / (len(r) + 2 * n0)
+        s_l = (np.sum(w_l * r_los**2) + n0 * prior.sigma_los**2) / (np.sum(w_l) + n0)
+        s_n = (np.sum(w_n * r_nlos**2) + n0 * prior.sigma_nlos**2) / (np.sum(w_n) + n0)
+        # the configured sigmas are upper bounds: inflating them would only hide NLOS
+        self.sigma_los = min(max(float(np.sqrt(s_l)), SIGMA_LOS_MIN), prior.sigma_los)
+        self.sigma_nlos = min(max(float(np.sqrt(s_n)), SIGMA_NLOS_MIN), prior.sigma_nlos)
+        p = (np.sum(w_n) + n0 * prior.p_nlos) / (len(g) + n0)
         self.p_nlos = float(np.clip(p, 0.02, 0.9))
 
 
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float
 ) -> tuple[np.ndarray, float]:
-    """Forward pass of the two-state LOS/NLOS chain of one anchor (time-ordered ranges).
+    """Forward pass of one anchor's LOS/NLOS chain over its time-ordered ranges.
 
-    Returns the filtered P(NLOS) per range and the last one. The transition mixes
-    switching (probability `p_switch` per range) towards the stationary rate `p_nlos`.
+    Returns P(NLOS) per range and the last value. Each step keeps the state with
+    probability 1 - p_switch and otherwise redraws it with the stationary rate p_nlos.
     """
     out = np.empty(len(ll_los))
     p = p0
-    d = ll_nlos - ll_los
+    d = np.clip(ll_nlos - ll_los, -50.0, 50.0)
     for i in range(len(d)):
         prior = (1.0 - p_switch) * p + p_switch * p_nlos
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
-        lo = np.log(prior / (1.0 - prior)) + d[i]
-        p = 1.0 / (1.0 + np.exp(-np.clip(lo, -50.0, 50.0)))
+        lo = math.log(prior / (1.0 - prior)) + d[i]
+        p = 1.0 / (1.0 + math.exp(-lo))
         out[i] = p
     return out, p
 
@@ -119,17 +136,25 @@ def hmm_smooth(
     alpha = np.empty((n, 2))
     cur = np.array([1.0 - p_nlos, p_nlos]) * e[0]
     alpha[0] = cur / cur.sum()
+    a00, a01, a10, a11 = a[0, 0], a[0, 1], a[1, 0], a[1, 1]
+    e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
+    x0, x1 = float(alpha[0, 0]), float(alpha[0, 1])
     for i in range(1, n):
-        cur = (alpha[i - 1] @ a) * e[i]
-        alpha[i] = cur / max(cur.sum(), 1e-300)
-    beta = np.ones(2)
+        y0 = (x0 * a00 + x1 * a10) * e0[i]
+        y1 = (x0 * a01 + x1 * a11) * e1[i]
+        s = max(y0 + y1, 1e-300)
+        x0, x1 = y0 / s, y1 / s
+        alpha[i, 0], alpha[i, 1] = x0, x1
     post = np.empty(n)
     post[-1] = alpha[-1, 1]
+    b0, b1 = 1.0, 1.0
     for i in range(n - 2, -1, -1):
-        beta = a @ (e[i + 1] * beta)
-        beta /= max(beta.sum(), 1e-300)
-        g = alpha[i] * beta
-        post[i] = g[1] / max(g.sum(), 1e-300)
+        c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
+        nb0, nb1 = a00 * c0 + a01 * c1, a10 * c0 + a11 * c1
+        s = max(nb0 + nb1, 1e-300)
+        b0, b1 = nb0 / s, nb1 / s
+        g0, g1 = alpha[i, 0] * b0, alpha[i, 1] * b1
+        post[i] = g1 / max(g0 + g1, 1e-300)
     return post
 
 
@@ -140,25 +165,42 @@ def range_factor(
     sigma: float,
     body_t_tag: gtsam.Pose3,
     uwb: UwbConfig,
-    with_bias: bool,
+    bias_key: int | None,
 ) -> gtsam.NonlinearFactor:
-    """Range from keyframe pose X(k) through `body_t_tag` to anchor L(a) (+ bias D(a))."""
+    """Range from X(k) through `body_t_tag` to anchor L(a), plus the bias variable if any."""
     noise = range_noise(sigma, uwb.robust_kernel, uwb.kernel_threshold)
-    if with_bias:
+    if bias_key is not None:
         return gtsam.RangeFactorWithTransformBias3D(
-            X(k), L(anchor), D(anchor), float(measured), noise, body_t_tag
+            X(k), L(anchor), bias_key, float(measured), noise, body_t_tag
         )
     return gtsam.RangeFactorWithTransform3D(X(k), L(anchor), float(measured), noise, body_t_tag)
 
 
-def predicted_ranges(
-    poses_rt: tuple[np.ndarray, np.ndarray], tag_in_body: np.ndarray, anchors: np.ndarray
-) -> np.ndarray:
-    """|R p_tag + t - anchor| (m) for rotations (N,3,3), translations (N,3), tags (N,3)."""
-    rot, trans = poses_rt
-    p = np.einsum("nij,nj->ni", rot, tag_in_body) + trans
-    return np.linalg.norm(p - anchors, axis=1)
+def los_bias_key(anchor: int, estimate_bias: bool, g: float = 0.0) -> int | None:
+    """Bias key of a range's LOS part: D(a), or None when biases are not estimated.
+
+    (`g` is accepted for symmetry; selecting only confidently-LOS ranges to calibrate D(a)
+    was tried and biases D(a) negative: the selection truncates the residuals.)
+    """
+    return D(anchor) if estimate_bias else None
 
 
-def kernel_is_robust(kernel: RobustKernel) -> bool:
-    return kernel is not RobustKernel.NONE
+def nlos_state_factors(
+    graph: gtsam.NonlinearFactorGraph,
+    key: int,
+    los_bias: float,
+    prev_key: int | None,
+    model: NlosModel,
+) -> None:
+    """Priors of a new NLOS state E(a, s): mean reversion to los_bias + mu, chain to E(a, s-1).
+
+    The reversion is a prior at the anchor's current LOS-bias estimate rather than a link
+    to D(a): linked, the many NLOS segments of a mostly blocked anchor would drag its LOS
+    bias towards their own mean excess.
+    """
+    rev = model.reversion_sigma if prev_key is not None else model.sigma_slow
+    noise = gtsam.noiseModel.Isotropic.Sigma(1, rev)
+    graph.add(gtsam.PriorFactorDouble(key, los_bias + model.mu_nlos, noise))
+    if prev_key is not None:
+        graph.add(gtsam.BetweenFactorDouble(
+            prev_key, key, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, model.chain_sigma)))
