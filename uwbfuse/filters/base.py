@@ -98,11 +98,17 @@ class StreamingFilter:
 
     #: Divergence recovery: when at least GATED_MAX of the last RECENT ranges were gated,
     #: or the mean normalised innovation squared (NIS; 1 for a consistent filter) of the
-    #: last RECENT accepted ranges exceeds chi2.ppf(gate_probability, RECENT) / RECENT,
-    #: the state is probably off (wheel slip, a bad start) rather than the ranges wrong,
-    #: and the position/heading covariance is inflated (`_inflate`).
+    #: last RECENT accepted ranges exceeds NIS_FACTOR chi2.ppf(gate_probability, RECENT) /
+    #: RECENT, the state is probably off (wheel slip, a bad start) rather than the ranges
+    #: wrong, and the position/heading covariance is inflated (`_inflate`).
     RECENT = 12
     GATED_MAX = 6
+    NIS_FACTOR = 3.0
+    #: Variances added by `_inflate`: horizontal position m^2, yaw rad^2, velocity (m/s)^2
+    #: (0.2 m, 0.1 rad, 0.2 m/s; larger steps let NLOS-biased ranges drag the estimate).
+    INFLATE_POS = 0.04
+    INFLATE_YAW = 0.01
+    INFLATE_VEL = 0.04
 
     def __init__(
         self,
@@ -157,7 +163,9 @@ class StreamingFilter:
         self._recent: list[bool] = []
         self._recent_nis: list[float] = []
         self.nis: F64 = np.zeros(0)
-        self.nis_max = gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
+        self.nis_max = (
+            self.NIS_FACTOR * gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
+        )
         self.gate_resets = 0
         self.stale = 0
 

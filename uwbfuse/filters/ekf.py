@@ -125,7 +125,9 @@ class ErrorStateEkf(StreamingFilter):
         self.q_diag = ImuNoise.from_config(config.imu).diag()
         w = config.wheel
         self.r_wheel_diag = np.array([w.sigma_v**2, w.sigma_lateral**2, w.sigma_lateral**2])
-        self.sigma_tilt2 = config.graph.planar_sigma_tilt**2
+        g = config.graph
+        self.r_planar = np.array([g.planar_sigma_z**2, g.planar_sigma_tilt**2,
+                                  g.planar_sigma_tilt**2])
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.R = np.eye(3)
@@ -135,6 +137,7 @@ class ErrorStateEkf(StreamingFilter):
         self.y: F64 = np.zeros(1)
         self.S: F64 = np.zeros((1, 1))
         self.K: F64 = np.zeros((N_ERR, 1))
+        self.z0 = 0.0
 
     def _start(self, state: InitialStateLike) -> None:
         self.p = np.array(state.position, dtype=np.float64)
@@ -144,6 +147,7 @@ class ErrorStateEkf(StreamingFilter):
         self.bg = r_bi @ np.asarray(state.gyro_bias, dtype=np.float64)
         self.ba = r_bi @ np.asarray(state.accel_bias, dtype=np.float64)
         self.P = initial_covariance(state, self.config)
+        self.z0 = float(self.p[2])
 
     # -- predict / update over one window ----------------------------------------------
 
@@ -211,13 +215,14 @@ class ErrorStateEkf(StreamingFilter):
             hs.append(h.reshape(3 * nw, N_ERR))
             ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
             rv.append(np.tile(self.r_wheel_diag, nw))
-        if self.planar:  # soft planar constraint on roll/pitch at the window start
+        if self.planar:  # soft planar constraint (height z0, level) at the window start
             up = self.R[:, 2]
-            h = np.zeros((2, N_ERR))
-            h[:, TH] = -skew(up)[:2]
+            h = np.zeros((3, N_ERR))
+            h[0, 2] = 1.0
+            h[1:, TH] = -skew(up)[:2]
             hs.append(h)
-            ys.append(-up[:2])
-            rv.append(np.full(2, self.sigma_tilt2))
+            ys.append(np.array([self.z0 - self.p[2], -up[0], -up[1]]))
+            rv.append(self.r_planar)
         dx0 = None
         if hs:
             H = np.concatenate(hs)
@@ -241,11 +246,11 @@ class ErrorStateEkf(StreamingFilter):
         self.ba = self.ba + dx[BA]
 
     def _inflate(self) -> None:
-        """Lock-out recovery: +0.5 m std on position (horizontal only when planar),
-        +0.3 m/s on velocity, +0.2 rad on yaw."""
-        self.P[P_, P_] += np.diag([0.25, 0.25, 0.0 if self.planar else 0.25])
-        self.P[V_, V_] += np.eye(3) * 0.1
-        self.P[8, 8] += 0.05
+        """Divergence recovery: widen position (horizontal only when planar), velocity, yaw."""
+        a = self.INFLATE_POS
+        self.P[P_, P_] += np.diag([a, a, 0.0 if self.planar else a])
+        self.P[V_, V_] += np.eye(3) * self.INFLATE_VEL
+        self.P[8, 8] += self.INFLATE_YAW
 
     def _pose(self) -> tuple[F64, F64]:
         return self.p.copy(), quat_xyzw_from_matrix(self.R)
@@ -348,10 +353,10 @@ class UnicycleEkf(StreamingFilter):
         return used
 
     def _inflate(self) -> None:
-        """Lock-out recovery: +0.5 m std on x, y and +0.2 rad on yaw."""
-        self.P[0, 0] += 0.25
-        self.P[1, 1] += 0.25
-        self.P[2, 2] += 0.05
+        """Divergence recovery: widen x, y and yaw."""
+        self.P[0, 0] += self.INFLATE_POS
+        self.P[1, 1] += self.INFLATE_POS
+        self.P[2, 2] += self.INFLATE_YAW
 
     def _pose(self) -> tuple[F64, F64]:
         return np.array([self.x[0], self.x[1], self.z0]), quat_xyzw_from_yaw(float(self.x[2]))

@@ -184,10 +184,10 @@ class ErrorStateUkf(ErrorStateEkf):
             z[:, 0] = wv
             zm.append(z.reshape(-1))
             rv.append(np.tile(self.r_wheel_diag, nw))
-        if self.planar:
-            zs.append(r0[:, :2, 2])
-            zm.append(np.zeros(2))
-            rv.append(np.full(2, self.sigma_tilt2))
+        if self.planar:  # height z0 and level, at the window start
+            zs.append(np.concatenate([self.p[2] + off[:, 2:3], r0[:, :2, 2]], axis=1))
+            zm.append(np.array([self.z0, 0.0, 0.0]))
+            rv.append(self.r_planar)
         used = np.ones(nr, dtype=bool)
         corr = ex_mean
         if zs:
