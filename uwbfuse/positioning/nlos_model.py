@@ -35,6 +35,7 @@ from uwbfuse.streams import AnchorMap, SensorLog
 F64 = NDArray[np.float64]
 
 _MIN_LOS_STD = 0.005  # floor on the LOS std used for probabilities, m
+_MAX_LOS_STD = 0.15  # upper bound of a fitted LOS std, m
 
 
 @dataclass(frozen=True)
@@ -196,7 +197,7 @@ def _fit_histogram(errors: F64, bins: int, los_guess: NlosParams) -> NlosParams:
     best = None
     for mu_n0 in (los_guess.nlos_mean, 3 * los_guess.nlos_mean, 0.5):
         theta0 = np.array([0.8, 0.0, math.log(s_l), 0.2, mu_n0, math.log(los_guess.nlos_std)])
-        bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(0.003), math.log(0.3)),
+        bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(0.003), math.log(_MAX_LOS_STD)),
                   (0.0, 1.5), (0.0, 3.0), (math.log(0.01), math.log(2.0))]
         r = minimize(cost, theta0, method="L-BFGS-B", bounds=bounds)
         if best is None or r.fun < best.fun:
@@ -205,11 +206,13 @@ def _fit_histogram(errors: F64, bins: int, los_guess: NlosParams) -> NlosParams:
     w_l, _mu_l, ls_l, w_n, mu_n, ls_n = best.x
     total = max(w_l + w_n, 1e-9)
     prior = float(w_n / total)
-    if prior < 0.01 or math.exp(ls_n) < math.exp(ls_l):
-        # No separate NLOS mode: one LOS curve.
-        return NlosParams(float(math.exp(ls_l)), los_guess.nlos_mean, los_guess.nlos_std,
-                          max(prior, 0.01))
-    return NlosParams(float(math.exp(ls_l)), float(mu_n), float(math.exp(ls_n)), prior)
+    los_std, nlos_std = float(math.exp(ls_l)), float(math.exp(ls_n))
+    if prior < 0.01 or nlos_std < 2.0 * los_std or mu_n < los_std:
+        # No distinct NLOS mode (a second curve that only widens the LOS one): keep the
+        # LOS fit and the prior NLOS distribution, so rare NLOS ranges are not over-weighted.
+        return NlosParams(los_std, los_guess.nlos_mean, los_guess.nlos_std,
+                          float(np.clip(prior, 0.01, los_guess.nlos_prior)))
+    return NlosParams(los_std, float(mu_n), nlos_std, prior)
 
 
 def range_errors(log: SensorLog, config: Config) -> tuple[F64, NDArray[np.int32]]:
