@@ -35,6 +35,8 @@ needs_dask = pytest.mark.skipif(
     not HAVE_DASK,
     reason="dask.distributed not installed (pip install 'uwbfuse[fleet]'); CI installs it",
 )
+# Bounded: every cluster wait below has its own deadline; this is the backstop.
+pytestmark = pytest.mark.timeout(180)
 METHOD = Method.ODOM
 N_GOOD = 3
 START_TIMEOUT_S = 30.0
@@ -76,7 +78,7 @@ class DaskProcesses:
         sched_file = workdir / "scheduler.json"
         self.scheduler = self._spawn(
             ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-             "--dashboard-address", "127.0.0.1:0",
+             "--dashboard-address", "127.0.0.1:0", "--idle-timeout", "120s",
              "--scheduler-file", str(sched_file)], "scheduler.log",
         )
         deadline = time.monotonic() + START_TIMEOUT_S

@@ -19,6 +19,7 @@ from uwbfuse.estimator import Method
 from uwbfuse.fleet import config_payload
 from uwbfuse.montecarlo import (
     RunSpec,
+    StartAlignment,
     align_first_pose,
     errors_at_times,
     montecarlo,
@@ -33,6 +34,7 @@ needs_dask = pytest.mark.skipif(
     not HAVE_DASK,
     reason="dask.distributed not installed (pip install 'uwbfuse[fleet]'); CI installs it",
 )
+pytestmark = pytest.mark.timeout(180)
 T0 = 1_700_000_000 * NS_PER_S
 CFG = config_payload(Config())
 
@@ -87,7 +89,7 @@ def test_run_job_isolates_a_crashing_method(monkeypatch: pytest.MonkeyPatch) -> 
 
     monkeypatch.setattr(uwbfuse.pipeline, "estimate", crash_imu)
     spec = RunSpec("seed-00004", "room", 21.0, 4, (Method.IMU, Method.ODOM), CFG,
-                   (20.0,), "auto")
+                   (20.0,), StartAlignment.AUTO)
     rows = run_montecarlo_job(spec)
     assert [r["method"] for r in rows] == ["imu", "odom"]
     imu, odom = rows
@@ -97,7 +99,7 @@ def test_run_job_isolates_a_crashing_method(monkeypatch: pytest.MonkeyPatch) -> 
     assert 0 <= odom[time_label(20.0)] < 0.5 and odom["ate_rmse_m"] < 0.5
     # An unknown scenario fails every row of the run, with the simulator's message.
     bad = run_montecarlo_job(RunSpec("x", "nowhere", 5.0, 0, (Method.ODOM,), CFG,
-                                     (1.0,), "auto"))
+                                     (1.0,), StartAlignment.AUTO))
     assert bad[0]["status"] == "failed" and "nowhere" in bad[0]["error"]
 
 
@@ -129,7 +131,7 @@ def test_study_on_local_cluster_matches_in_process_runs_and_resumes(tmp_path: Pa
     # Same numbers as running seed 1 here (workers are separate processes).
     here = run_montecarlo_job(
         RunSpec("seed-00001", "room", 22.0, 1, (Method.ODOM, Method.IMU), CFG,
-                (20.0,), "auto")
+                (20.0,), StartAlignment.AUTO)
     )
     there = [r for r in res.rows if r["seed"] == 1]
     for a, b in zip(here, there, strict=True):

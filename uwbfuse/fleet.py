@@ -235,6 +235,8 @@ def cluster(
         return
 
     if scheduler:
+        if workers is not None:
+            log.warning("--workers %d ignored: the cluster at %s has its own", workers, scheduler)
         try:
             client = distributed.Client(scheduler, timeout=WORKER_WAIT_S)
         except (OSError, TimeoutError) as e:

@@ -28,6 +28,7 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -57,7 +58,21 @@ DEFAULT_TIMES_S: tuple[float, ...] = (20.0, 100.0, 150.0, 200.0)
 """Times after the log start at which errors are collected (Qiu 2022, Table 5), s."""
 
 DEAD_RECKONING = frozenset({Method.IMU, Method.ODOM})
-ALIGNMENTS = ("auto", "none", "first")
+
+
+class StartAlignment(StrEnum):
+    """How a trajectory is placed before scoring: `auto` gives dead reckoning (imu, odom)
+    the ground-truth start pose, `first` does so for every method, `none` for none."""
+
+    AUTO = "auto"
+    NONE = "none"
+    FIRST = "first"
+
+    def applies_to(self, method: Method) -> bool:
+        return self is StartAlignment.FIRST or (
+            self is StartAlignment.AUTO and method in DEAD_RECKONING
+        )
+
 DONE_FORMAT = 1
 
 
@@ -159,7 +174,7 @@ class RunSpec:
     methods: tuple[Method, ...]
     config: dict[str, Any]  # fleet.config_payload(): validated again on the worker
     times_s: tuple[float, ...]
-    align: str
+    align: StartAlignment
 
 
 def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
@@ -193,7 +208,7 @@ def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
         try:
             res = estimate(sim, m, config)
             est = res.trajectory
-            if spec.align == "first" or (spec.align == "auto" and m in DEAD_RECKONING):
+            if spec.align.applies_to(m):
                 est = align_first_pose(est, gt)
             errs = errors_at_times(est, gt, t0_ns, spec.times_s)
             row.update({time_label(t): float(e) for t, e in zip(spec.times_s, errs, strict=True)})
@@ -278,6 +293,9 @@ class MonteCarloResult:
             f"Monte Carlo: scenario {self.scenario}, {self.runs} runs of {self.duration_s:g} s; "
             "RMSE over runs of the 3-D position error at each time"
         )
+        if self.baseline is not None:
+            b = self.baseline.value
+            title += f" (*_vs_{b}_pct: error reduction over {b})"
         tc, tr = self.time_table()
         mc, mr = self.method_table()
         return f"{title}\n\n{table_markdown(tc, tr)}\n{table_markdown(mc, mr)}"
@@ -303,7 +321,7 @@ def _marker_key(spec: RunSpec, config_sha: str) -> dict[str, Any]:
     return {
         "format": DONE_FORMAT, "scenario": spec.scenario, "duration_s": spec.duration_s,
         "seed": spec.seed, "methods": [m.value for m in spec.methods],
-        "times_s": list(spec.times_s), "align": spec.align, "config_sha256": config_sha,
+        "times_s": list(spec.times_s), "align": spec.align.value, "config_sha256": config_sha,
     }
 
 
@@ -342,7 +360,7 @@ def montecarlo(
     config_path: str | Path | None = None,
     seed0: int = 0,
     times_s: Sequence[float] = DEFAULT_TIMES_S,
-    align: str = "auto",
+    align: str | StartAlignment = StartAlignment.AUTO,
     workers: int | None = None,
     dashboard: bool = False,
     resume: bool = True,
@@ -366,8 +384,11 @@ def montecarlo(
         raise FleetError(f"--runs must be at least 1, got {runs}")
     if not (duration_s > 0 and math.isfinite(duration_s)):
         raise FleetError(f"--duration must be a positive number of seconds, got {duration_s}")
-    if align not in ALIGNMENTS:
-        raise FleetError(f"unknown alignment {align!r}; one of: {', '.join(ALIGNMENTS)}")
+    try:
+        start_align = StartAlignment(align)
+    except ValueError:
+        choices = ", ".join(a.value for a in StartAlignment)
+        raise FleetError(f"unknown alignment {align!r}; one of: {choices}") from None
     chosen = parse_methods(methods)
     available = set(available_methods())
     missing = [m.value for m in chosen if m not in available]
@@ -386,7 +407,7 @@ def montecarlo(
 
     specs = [
         RunSpec(f"seed-{seed0 + i:05d}", scenario, float(duration_s), seed0 + i, chosen,
-                config_payload(config), times, align)
+                config_payload(config), times, start_align)
         for i in range(runs)
     ]
     results: dict[str, list[dict[str, Any]]] = {}
