@@ -40,6 +40,7 @@ from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
+ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
 
 
 @dataclass
@@ -245,7 +246,7 @@ class GraphBuilder:
         st = self.start
         tilt = 0.05 if self.has_imu else 0.02
         # the start comes from a few seconds of data: widen its stated uncertainty
-        pos_s = max(2.0 * float(st.position_sigma), 0.1)
+        pos_s = max(3.0 * float(st.position_sigma), 0.3)
         yaw_s = min(max(3.0 * float(st.yaw_sigma), 0.05), np.pi)
         z_s = self.g.planar_sigma_z if self.planar else max(pos_s, 0.3)
         if self.planar:
@@ -258,7 +259,8 @@ class GraphBuilder:
         if self.planar:
             inc.graph.add(self._planar_prior(0, self.pose))
         if self.has_imu:
-            v_s = 0.05 if st.still else 0.5
+            # `still` says the log *started* still; the state may be taken while moving
+            v_s = 0.1 if float(np.linalg.norm(self.vel)) < 0.05 else 0.5
             inc.graph.add(gtsam.PriorFactorVector(V(0), self.vel, diagonal([v_s] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
                 B(0), self.bias, diagonal(imu_mod.bias_prior_sigmas(self.cfg.imu))))
@@ -275,13 +277,20 @@ class GraphBuilder:
                     gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_anchor_sigma)))
                 inc.values.insert(D(a), 0.0)
         if self.with_bias:
-            inc.graph.add(gtsam.PriorFactorDouble(
-                C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
             inc.values.insert(C, 0.0)
         for key in keys:
             inc.stamps[key] = 0.0
         self._stamp_globals(inc, 0.0)
         self._record(inc)
+        if self.with_bias:
+            # Online, the common bias may only move slowly: at the start of a log every
+            # anchor can be in NLOS at once, and a loose prior would take that shared excess
+            # for a calibration offset. The batch graph gets the configured prior.
+            s_on = min(self.g.range_bias_sigma, ONLINE_COMMON_BIAS_SIGMA)
+            inc.graph.add(gtsam.PriorFactorDouble(C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_on)))
+            if self.full_graph is not None:
+                self.full_graph.add(gtsam.PriorFactorDouble(
+                    C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
         return inc
 
     def _stamp_globals(self, inc: Increment, s: float) -> None:

@@ -173,7 +173,7 @@ class GraphEstimator:
             self._read_nlos_states(sm, b)
             self._save_leaving(sm, b)
         except RuntimeError as exc:
-            self._reanchor(str(exc))
+            self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
 
     def _read_nlos_states(self, sm: OnlineSmoother, b: GraphBuilder) -> None:

@@ -28,7 +28,8 @@ def preintegration_params(cfg: ImuConfig, ext: Extrinsics) -> gtsam.Preintegrati
     i3 = np.eye(3)
     p.setAccelerometerCovariance(i3 * cfg.accel_noise_density**2)
     p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2)
-    p.setIntegrationCovariance(i3 * 1e-8)
+    # 1e-6 (m/s)^2 s: below ~1e-7 the 0.1 s factors become too ill-conditioned for Cholesky
+    p.setIntegrationCovariance(i3 * 1e-6)
     p.setBiasAccCovariance(i3 * cfg.accel_bias_random_walk**2)
     p.setBiasOmegaCovariance(i3 * cfg.gyro_bias_random_walk**2)
     body_p_imu = pose_from_xyzq(ext.imu_in_base)

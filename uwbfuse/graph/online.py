@@ -34,7 +34,7 @@ def isam2_params() -> gtsam.ISAM2Params:
 class OnlineSmoother:
     """A fixed-lag iSAM2 over keyframe increments, with extra iterations on demand."""
 
-    def __init__(self, lag_s: float, extra_iterations: int = 1) -> None:
+    def __init__(self, lag_s: float, extra_iterations: int = 0) -> None:
         self.lag_s = lag_s
         self.extra_iterations = extra_iterations
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
