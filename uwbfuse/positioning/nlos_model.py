@@ -175,8 +175,16 @@ def weighted_fix(
 
 
 # ---------------------------------------------------------------------- calibration
-def _fit_histogram(errors: F64, bins: int, los_guess: NlosParams) -> NlosParams:
-    """Qiu eq. 8-9: fit A_l N(0-ish, s_l) + A_n N(m_n, s_n) to the error histogram."""
+def _fit_histogram(
+    errors: F64, bins: int, los_guess: NlosParams,
+    los_bounds: tuple[float, float] = (0.003, 0.15),
+) -> NlosParams:
+    """Qiu eq. 8-9: fit A_l N(0-ish, s_l) + A_n N(m_n, s_n) to the error histogram.
+
+    los_bounds: allowed LOS std (m); per-anchor fits are held near the global LOS std (the
+    LOS noise is the radio's), so that an anchor with few LOS ranges cannot turn its LOS
+    curve into a second NLOS one.
+    """
     e = errors[np.isfinite(errors)]
     lo, hi = np.percentile(e, [0.5, 99.5])
     lo, hi = min(lo, -4 * los_guess.los_std), max(hi, 4 * los_guess.los_std)
@@ -193,11 +201,11 @@ def _fit_histogram(errors: F64, bins: int, los_guess: NlosParams) -> NlosParams:
     def cost(theta: F64) -> float:
         return float(np.sum((model(theta) - b_k) ** 2))
 
-    s_l = max(float(np.std(e[np.abs(e) < 3 * los_guess.los_std + 0.05])), 0.01)
+    s_l = float(np.clip(np.std(e[np.abs(e) < 3 * los_guess.los_std + 0.05]), *los_bounds))
     best = None
     for mu_n0 in (los_guess.nlos_mean, 3 * los_guess.nlos_mean, 0.5):
         theta0 = np.array([0.8, 0.0, math.log(s_l), 0.2, mu_n0, math.log(los_guess.nlos_std)])
-        bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(0.003), math.log(_MAX_LOS_STD)),
+        bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(los_bounds[0]), math.log(los_bounds[1])),
                   (0.0, 1.5), (0.0, 3.0), (math.log(0.01), math.log(2.0))]
         r = minimize(cost, theta0, method="L-BFGS-B", bounds=bounds)
         if best is None or r.fun < best.fun:
@@ -256,12 +264,13 @@ def calibrate_nlos(
             f"{log.source}: calibrate-nlos needs at least {min_samples} ranges within the "
             f"ground-truth time span, got {int(np.count_nonzero(ok))}"
         )
-    default = _fit_histogram(err[ok], bins, guess)
+    default = _fit_histogram(err[ok], bins, guess, (0.003, _MAX_LOS_STD))
     per: dict[str, NlosParams] = {}
     samples: dict[str, int] = {}
     for i, aid in enumerate(log.anchors.ids):
         e = err[ok & (anc == i)]
         samples[aid] = len(e)
         if len(e) >= min_samples:
-            per[aid] = _fit_histogram(e, bins, default)
+            g = default.los_std
+            per[aid] = _fit_histogram(e, bins, default, (0.5 * g, 2.0 * g))
     return NlosModel(default, per, samples)
