@@ -40,6 +40,7 @@ from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
+WHEEL_HUBER_K = 1.345  # Huber threshold of the wheel factor (whitened), against slip
 ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
 
 
@@ -330,7 +331,7 @@ class GraphBuilder:
             d = self.wheel.between(t_a, t_b)
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = (0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2)
-            inc.graph.add(between_factor(X(ka), X(k), d, cov, oop))
+            inc.graph.add(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
             wp = pose_a.compose(se2_to_pose3(d))
             if self.has_imu:
                 xyz = np.array([wp.x(), wp.y(), new_pose.z()])

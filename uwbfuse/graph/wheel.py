@@ -159,10 +159,12 @@ def between_factor(
     delta: np.ndarray,
     cov_xyt: np.ndarray,
     out_of_plane_sigmas: tuple[float, float, float],
+    robust_k: float | None = None,
 ) -> gtsam.BetweenFactorPose3:
     """BetweenFactorPose3 for a planar delta with covariance in (x, y, theta).
 
-    `out_of_plane_sigmas` are (roll rad, pitch rad, z m) sigmas of the same interval.
+    `out_of_plane_sigmas` are (roll rad, pitch rad, z m) sigmas of the same interval;
+    `robust_k` (whitened units) wraps the Gaussian in a Huber kernel against wheel slip.
     Tangent order of Pose3 in GTSAM: (rx, ry, rz, tx, ty, tz).
     """
     cov6 = np.zeros((6, 6))
@@ -172,4 +174,10 @@ def between_factor(
     cov6[np.ix_(ix, ix)] = cov_xyt
     # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
     cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
-    return gtsam.BetweenFactorPose3(key_a, key_b, se2_to_pose3(delta), gaussian_covariance(cov6))
+    noise = gaussian_covariance(cov6)
+    if robust_k is not None:
+        # wheel slip: a disagreeing interval (IMU, ranges) loses weight instead of
+        # dragging the trajectory
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
+    return gtsam.BetweenFactorPose3(key_a, key_b, se2_to_pose3(delta), noise)
