@@ -153,7 +153,7 @@ def _cmd_batch(args: argparse.Namespace) -> int:
             progress=bar,
             on_start=lambda info: _print_cluster(describe_cluster(info, args.dashboard)),
         )
-    print(result.table(("log", "status", "duration_s", "poses", "ate_rmse_m", "wall_s",
+    print(result.table(("log", "status", "duration_s", "poses", "ate2d_rmse_m", "wall_s",
                         "realtime_factor", "skipped", "error")))
     print(f"{result.n_ok} of {len(result.rows)} logs ok ({result.n_resumed} resumed) in "
           f"{result.wall_s:.1f} s; summary: {result.summary_csv}, {result.summary_md}")

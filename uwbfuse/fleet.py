@@ -51,6 +51,7 @@ from uwbfuse.config import Config, config_from_dict, dump_config, load_config
 from uwbfuse.errors import FleetError, UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.progress import ProgressFn
+from uwbfuse.streams import PoseStream
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +62,8 @@ POLL_S = 2.0
 MAX_ERROR_CHARS = 400
 
 SUMMARY_COLUMNS: tuple[str, ...] = (
-    "log", "status", "error", "duration_s", "poses", "ate_rmse_m", "ate_align", "wall_s",
-    "read_s",
+    "log", "status", "error", "duration_s", "poses", "ate2d_rmse_m", "ate3d_rmse_m",
+    "ate_align", "wall_s", "read_s",
     "estimate_s", "realtime_factor", "skipped", "tum", "host", "resumed",
 )
 """Columns of `summary.csv` / `summary.md`, in order."""
@@ -455,20 +456,24 @@ def ate_alignment(method: Method) -> str:
     return "none" if method.uses_ranges else "se2"
 
 
-def ate_rmse(trajectory: Any, ground_truth: Any, align: str = "none") -> tuple[float | None, str]:
-    """ATE RMSE (m, 3-D) of `trajectory` against `ground_truth` after `align`, or
-    (None, reason). Uses `uwbfuse.eval.evaluate`."""
+def ate_metrics(
+    trajectory: PoseStream, ground_truth: PoseStream | None, align: str
+) -> tuple[dict[str, Any], str]:
+    """ATE RMSE in the plane and in 3-D (m) of `trajectory` against `ground_truth` after
+    `align`, as `uwbfuse.eval.evaluate` gives them (and `compare` reports them); empty
+    with the reason when it cannot score."""
     if ground_truth is None or len(ground_truth) == 0:
-        return None, ""
-    try:
-        from uwbfuse.eval import evaluate
-    except ImportError:
-        return None, "ATE: uwbfuse.eval not available"
+        return {}, ""
+    from uwbfuse.eval import evaluate
+
     try:
         result = evaluate(trajectory, ground_truth, align=align)
     except UwbfuseError as e:
-        return None, one_line(f"ATE: {e}")
-    return float(result.ate_3d.rmse), ""
+        return {}, one_line(f"ATE: {e}")
+    return {
+        "ate2d_rmse_m": float(result.ate_2d.rmse), "ate3d_rmse_m": float(result.ate_3d.rmse),
+        "ate_align": align,
+    }, ""
 
 
 def run_batch_job(spec: BatchJobSpec) -> BatchJobOutput:
@@ -498,12 +503,13 @@ def run_batch_job(spec: BatchJobSpec) -> BatchJobOutput:
             tmp = Path(d) / "est.tum"
             write_tum(tmp, res.trajectory)
             tum = tmp.read_bytes()
-        align = ate_alignment(spec.method)
-        ate, note = ate_rmse(res.trajectory, sensor_log.ground_truth, align)
+        ate, note = ate_metrics(
+            res.trajectory, sensor_log.ground_truth, ate_alignment(spec.method)
+        )
+        row.update(ate)
         row.update(
             status="ok", error=note, duration_s=res.log_duration_s, poses=len(res.trajectory),
-            ate_rmse_m=ate, ate_align=align if ate is not None else None, read_s=read_s,
-            estimate_s=res.estimate_wall_s,
+            read_s=read_s, estimate_s=res.estimate_wall_s,
             realtime_factor=res.realtime_factor,
             skipped=sum(sensor_log.report.skipped.values()),
         )
