@@ -1,0 +1,204 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The initialiser: start state from sensors alone, per sensor combination."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.synth_positioning import ROOM, handheld_3d, make_log, planar_drive, truth_at
+from uwbfuse.config import Config
+from uwbfuse.estimator import output_epochs
+from uwbfuse.positioning.initialisation import Initialiser, InitialState
+from uwbfuse.streams import NS_PER_S, SensorLog
+
+LEVER = (0.1, 0.0, 0.3)
+
+
+def drive(
+    log: SensorLog, streams: tuple[str, ...], config: Config | None = None
+) -> tuple[InitialState | None, Initialiser]:
+    """Feed `log` at 10 Hz like `run_streaming`; return the first InitialState."""
+    cfg = config or Config(extrinsics={"tag_in_base": LEVER})
+    init = Initialiser(cfg, log.anchors, frozenset(streams))
+    srcs = []
+    if "imu" in streams and log.imu is not None:
+        srcs.append((init.add_imu, (log.imu.t_ns, log.imu.gyro, log.imu.accel)))
+    if "wheel" in streams and log.wheel is not None:
+        srcs.append((init.add_wheel, (log.wheel.t_ns, log.wheel.v, log.wheel.omega)))
+    if "uwb" in streams and log.ranges is not None:
+        srcs.append((init.add_ranges, (log.ranges.t_ns, log.ranges.anchor, log.ranges.range)))
+    starts = [0] * len(srcs)
+    for t in output_epochs(log, 10.0):
+        for i, (add, cols) in enumerate(srcs):
+            e = int(np.searchsorted(cols[0], t, side="right"))
+            if e > starts[i]:
+                add(*(c[starts[i]:e] for c in cols))
+                starts[i] = e
+        st = init.try_initialise(int(t))
+        if st is not None:
+            assert st.t_ns == int(t)
+            return st, init
+    return None, init
+
+
+def errors(log: SensorLog, st: InitialState) -> tuple[float, float]:
+    """(horizontal position error m, yaw error deg) of a state against ground truth."""
+    p, yaw, _ = truth_at(log, st.t_ns)
+    dyaw = (st.yaw - yaw + math.pi) % (2 * math.pi) - math.pi
+    return float(np.linalg.norm(st.position[:2] - p[:2])), math.degrees(dyaw)
+
+
+COMBOS = [("imu", "wheel", "uwb"), ("wheel", "uwb"), ("imu", "uwb")]
+
+
+@pytest.mark.parametrize("still", [3.0, 0.0], ids=["still-start", "moving-start"])
+@pytest.mark.parametrize("streams", COMBOS[:2], ids=lambda s: "+".join(s))
+def test_wheeled_synthetic(streams: tuple[str, ...], still: float) -> None:
+    """test that wheeled logs initialise to < 0.1 m and < 3 deg, still or moving at start"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, still), ROOM, 15.0, seed=1,
+                      imu="imu" in streams, lever=LEVER)
+    st, init = drive(log, streams)
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(log, st)
+    # Measured: 0.007-0.045 m, 0.05-2.3 deg.
+    assert e_pos < 0.1 and abs(e_yaw) < 3.0
+    assert st.yaw_sigma < math.radians(3.0)
+    # The state refers to the time asked for: base height from the floor prior and data.
+    assert abs(st.position[2]) < 0.15
+    t_move = log.time_span_ns()[0] + still * NS_PER_S
+    assert st.t_ns > t_move  # heading needs motion
+
+
+def test_imu_uwb_still_start_synthetic() -> None:
+    """test that IMU + UWB (no wheels) with a still start gets heading from the first motion"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 3.0), ROOM, 15.0, seed=1, wheel=False,
+                      lever=LEVER)
+    st, init = drive(log, ("imu", "uwb"))
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(log, st)
+    assert st.still
+    assert e_pos < 0.1 and abs(e_yaw) < 3.0  # measured 0.045 m, 0.5 deg
+    # The standstill gyro bias is the simulated one (0.003, -0.002, 0.004) rad/s.
+    np.testing.assert_allclose(st.gyro_bias, [0.003, -0.002, 0.004], atol=1e-3)
+
+
+def test_handheld_3d_still_start() -> None:
+    """test that a 3-D handheld (IMU + UWB) initialises position, heading and roll/pitch"""
+    log, _ = make_log(handheld_3d((2.0, 1.0, 1.0), -0.5, 3.0), ROOM, 16.0, seed=2,
+                      wheel=False, lever=LEVER)
+    st, init = drive(log, ("imu", "uwb"))
+    assert st is not None, init.last_reason
+    p, _yaw, rot = truth_at(log, st.t_ns)
+    _e_pos, e_yaw = errors(log, st)
+    assert np.linalg.norm(st.position - p) < 0.15  # measured 0.02-0.04 m
+    assert abs(e_yaw) < 4.0  # measured 1.4-2.0 deg
+    tilt = np.degrees(np.arccos(np.clip((np.trace(rot.T @ st.R_map_base) - 1) / 2, -1, 1)))
+    assert tilt < 5.0
+
+
+def test_imu_uwb_moving_start_reports_its_uncertainty() -> None:
+    """test that without a still start or wheels the heading comes with an honest std"""
+    log, _ = make_log(handheld_3d((2.0, 1.0, 1.0), -0.5, 0.0), ROOM, 12.0, seed=2,
+                      wheel=False, lever=LEVER)
+    st, init = drive(log, ("imu", "uwb"))
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(log, st)
+    assert not st.still
+    assert e_pos < 0.15
+    assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
+
+
+def test_uwb_only_track_direction() -> None:
+    """test that UWB alone gives position and the track direction once moving"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 0.0), ROOM, 10.0, seed=1, imu=False,
+                      wheel=False, lever=LEVER)
+    st, init = drive(log, ("uwb",))
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(log, st)
+    assert e_pos < 0.2 and abs(e_yaw) < 10.0  # measured 0.11 m, 0.6 deg
+    assert np.linalg.norm(st.velocity[:2]) > 0.2
+
+
+def test_uwb_only_still_tag_has_unknown_heading() -> None:
+    """test that a still UWB-only tag starts after heading_timeout with yaw_sigma = pi"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 30.0), ROOM, 6.0, seed=1, imu=False,
+                      wheel=False, lever=LEVER)
+    st, _ = drive(log, ("uwb",))
+    assert st is not None
+    assert st.yaw_sigma == pytest.approx(math.pi)
+    assert errors(log, st)[0] < 0.1
+    t0 = log.time_span_ns()[0]
+    assert st.t_ns - t0 >= Config().init.heading_timeout * NS_PER_S
+
+
+def test_no_initial_state_before_the_data_allow_it() -> None:
+    """test that a standing vehicle never initialises, and the first state waits for motion"""
+    still_log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 100.0), ROOM, 8.0, seed=1,
+                            lever=LEVER)
+    st, init = drive(still_log, ("imu", "wheel", "uwb"))
+    assert st is None and "still" in init.last_reason
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 3.0), ROOM, 12.0, seed=1, lever=LEVER)
+    init = Initialiser(Config(extrinsics={"tag_in_base": LEVER}), ROOM,
+                       frozenset({"imu", "wheel", "uwb"}))
+    assert init.try_initialise(int(log.time_span_ns()[0])) is None
+    assert log.imu is not None and log.wheel is not None and log.ranges is not None
+    t_cut = log.time_span_ns()[0] + int(3.5 * NS_PER_S)  # 0.5 s after the first motion
+    k = np.searchsorted(log.imu.t_ns, t_cut, side="right")
+    init.add_imu(log.imu.t_ns[:k], log.imu.gyro[:k], log.imu.accel[:k])
+    k = np.searchsorted(log.wheel.t_ns, t_cut, side="right")
+    init.add_wheel(log.wheel.t_ns[:k], log.wheel.v[:k], log.wheel.omega[:k])
+    k = np.searchsorted(log.ranges.t_ns, t_cut, side="right")
+    init.add_ranges(log.ranges.t_ns[:k], log.ranges.anchor[:k], log.ranges.range[:k])
+    assert init.try_initialise(int(t_cut)) is None
+    assert "min_displacement" in init.last_reason or "fixes" in init.last_reason
+
+
+def test_no_anchors_starts_at_origin() -> None:
+    """test that without ranges the state is the map origin, heading zero, levelled"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 3.0), ROOM, 5.0, seed=1, uwb=False)
+    st, _ = drive(log, ("imu", "wheel"))
+    assert st is not None
+    np.testing.assert_allclose(st.position, 0.0)
+    assert abs(st.yaw) < 1e-2
+
+
+SIM_CASES = [
+    (sc, streams, still)
+    for sc in ("room", "warehouse", "factory")
+    for streams in COMBOS[:2]
+    for still in (2.0, 0.0)
+]
+
+
+@pytest.mark.parametrize(("scenario", "streams", "still"), SIM_CASES,
+                         ids=[f"{a}-{'+'.join(b)}-{'still' if c else 'moving'}"
+                              for a, b, c in SIM_CASES])
+def test_simulated_los_scenarios(scenario: str, streams: tuple[str, ...], still: float) -> None:
+    """test the simulated LOS sites (obstacles removed): < 0.1 m and < 5 deg at start"""
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    res = simulate_with_truth(scenario, 30.0, 1, still_start_s=still, streams=streams,
+                              tag_in_base=LEVER, boxes=(), outlier_prob=0.0)
+    st, init = drive(res.log, streams)
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(res.log, st)
+    # Measured over seeds 0-3: 0.001-0.053 m, |yaw| 0.07-4.2 deg (yaw std 1.2-2.8 deg).
+    assert e_pos < 0.1
+    assert abs(e_yaw) < 5.0
+    assert abs(math.radians(e_yaw)) < 4.0 * st.yaw_sigma + math.radians(0.5)
+
+
+def test_simulated_imu_uwb_warehouse_still_start() -> None:
+    """test IMU + UWB without wheels on the simulated warehouse (LOS) with a still start"""
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    res = simulate_with_truth("warehouse", 30.0, 0, still_start_s=2.0, streams=("imu", "uwb"),
+                              tag_in_base=LEVER, boxes=(), outlier_prob=0.0)
+    st, init = drive(res.log, ("imu", "uwb"))
+    assert st is not None, init.last_reason
+    e_pos, e_yaw = errors(res.log, st)
+    assert e_pos < 0.2
+    assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
