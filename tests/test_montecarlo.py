@@ -49,13 +49,14 @@ def _line(n: int, yaw: float, offset: tuple[float, float, float] = (0.0, 0.0, 0.
 
 
 def test_errors_at_times_interpolate_and_flag_uncovered_times() -> None:
-    """Test that errors are sampled at T seconds after t0 and are NaN outside coverage."""
+    """Test that errors are sampled at T s after t0 (2-D or 3-D), NaN outside coverage."""
     gt = _line(301, 0.0)
-    shifted = gt.position[:201] + np.array([0.3, 0.4, 0.0])
+    shifted = gt.position[:201] + np.array([0.3, 0.4, 1.2])
     est = PoseStream(gt.t_ns[:201], shifted, gt.quat_xyzw[:201])
     e = errors_at_times(est, gt, T0, [5.0, 12.34, 20.0, 25.0])
-    assert e[:3] == pytest.approx([0.5, 0.5, 0.5])
+    assert e[:3] == pytest.approx([0.5, 0.5, 0.5])  # horizontal by default
     assert math.isnan(e[3])
+    assert errors_at_times(est, gt, T0, [12.34], dims=3) == pytest.approx([1.3])
 
 
 def test_align_first_pose_puts_dead_reckoning_on_the_start_pose() -> None:

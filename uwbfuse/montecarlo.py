@@ -9,10 +9,12 @@ comparison between dynamic measurement and real value") and the ATE RMSE over th
 run. The study's table gives, per time, the RMSE of those errors over the runs for each
 method and each method's improvement over the baseline (`imu` when run, as in the paper).
 
-Errors are 3-D positions in the map frame. Dead reckoning (`imu`, `odom`) cannot know its
-start pose, so with `align="auto"` (the default) its trajectory is moved onto the ground
-truth at its first pose (position and heading), the paper's known-start convention; every
-method that uses ranges is scored as it is, in the anchor frame.
+Errors are horizontal (x, y) position errors in the map frame by default, as the AGV
+papers report them and `compare` heads its table (`dims=3` for 3-D). Dead reckoning
+(`imu`, `odom`) cannot know its start pose, so with `align="auto"` (the default) its
+trajectory is moved onto the ground truth at its first pose (position and heading), the
+paper's known-start convention; every method that uses ranges is scored as it is, in the
+anchor frame.
 
 Layout of `out_dir`: `montecarlo.csv` (RMSE by time), `montecarlo.md` (both tables),
 `runs.csv` (one row per run and method), `config.toml` (effective config),
@@ -144,17 +146,20 @@ def align_first_pose(est: PoseStream, gt: PoseStream) -> PoseStream:
 
 
 def errors_at_times(
-    est: PoseStream, gt: PoseStream, t0_ns: int, times_s: Sequence[float]
+    est: PoseStream, gt: PoseStream, t0_ns: int, times_s: Sequence[float], dims: int = 2
 ) -> np.ndarray:
-    """3-D position error (m) at `t0_ns + times_s`; NaN where either trajectory does not
-    cover the time."""
+    """Position error (m; over x, y for `dims` 2, x, y, z for 3) at `t0_ns + times_s`;
+    NaN where either trajectory does not cover the time."""
     t = t0_ns + np.round(np.asarray(times_s, dtype=np.float64) * NS_PER_S).astype(np.int64)
-    return np.linalg.norm(_interp_position(est, t) - _interp_position(gt, t), axis=1)
+    d = _interp_position(est, t) - _interp_position(gt, t)
+    return np.linalg.norm(d[:, :dims], axis=1)
 
 
-def trajectory_rmse(est: PoseStream, gt: PoseStream) -> float:
-    """RMSE (m) of the 3-D position error at the estimate's stamps within the GT span."""
-    e = np.linalg.norm(est.position - _interp_position(gt, est.t_ns), axis=1)
+def trajectory_rmse(est: PoseStream, gt: PoseStream, dims: int = 2) -> float:
+    """RMSE (m) of the position error (`dims` as in `errors_at_times`) at the estimate's
+    stamps within the ground truth's time span."""
+    d = est.position - _interp_position(gt, est.t_ns)
+    e = np.linalg.norm(d[:, :dims], axis=1)
     e = e[np.isfinite(e)]
     return float(np.sqrt(np.mean(e**2))) if len(e) else math.nan
 
@@ -175,6 +180,7 @@ class RunSpec:
     config: dict[str, Any]  # fleet.config_payload(): validated again on the worker
     times_s: tuple[float, ...]
     align: StartAlignment
+    dims: int = 2
 
 
 def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
@@ -210,9 +216,10 @@ def run_montecarlo_job(spec: RunSpec) -> list[dict[str, Any]]:
             est = res.trajectory
             if spec.align.applies_to(m):
                 est = align_first_pose(est, gt)
-            errs = errors_at_times(est, gt, t0_ns, spec.times_s)
+            errs = errors_at_times(est, gt, t0_ns, spec.times_s, spec.dims)
             row.update({time_label(t): float(e) for t, e in zip(spec.times_s, errs, strict=True)})
-            row.update(status="ok", error="", poses=len(est), ate_rmse_m=trajectory_rmse(est, gt))
+            ate = trajectory_rmse(est, gt, spec.dims)
+            row.update(status="ok", error="", poses=len(est), ate_rmse_m=ate)
         except UwbfuseError as e:
             row["error"] = one_line(str(e))
         except Exception as e:
@@ -244,6 +251,7 @@ class MonteCarloResult:
     out_dir: Path
     cluster: ClusterInfo
     wall_s: float
+    dims: int = 2
 
     def time_table(self) -> tuple[list[str], list[dict[str, Any]]]:
         """Qiu 2022 Table 5 layout: one row per time, RMSE per method, then each method's
@@ -291,7 +299,8 @@ class MonteCarloResult:
         """Both tables as Markdown, with a title line."""
         title = (
             f"Monte Carlo: scenario {self.scenario}, {self.runs} runs of {self.duration_s:g} s; "
-            "RMSE over runs of the 3-D position error at each time"
+            f"RMSE over runs of the {'horizontal' if self.dims == 2 else '3-D'} position "
+            "error at each time"
         )
         if self.baseline is not None:
             b = self.baseline.value
@@ -321,7 +330,8 @@ def _marker_key(spec: RunSpec, config_sha: str) -> dict[str, Any]:
     return {
         "format": DONE_FORMAT, "scenario": spec.scenario, "duration_s": spec.duration_s,
         "seed": spec.seed, "methods": [m.value for m in spec.methods],
-        "times_s": list(spec.times_s), "align": spec.align.value, "config_sha256": config_sha,
+        "times_s": list(spec.times_s), "align": spec.align.value, "dims": spec.dims,
+        "config_sha256": config_sha,
     }
 
 
@@ -361,6 +371,7 @@ def montecarlo(
     seed0: int = 0,
     times_s: Sequence[float] = DEFAULT_TIMES_S,
     align: str | StartAlignment = StartAlignment.AUTO,
+    dims: int = 2,
     workers: int | None = None,
     dashboard: bool = False,
     resume: bool = True,
@@ -372,7 +383,8 @@ def montecarlo(
 
     Only the times of `times_s` within `duration_s` are scored. `align`: "auto" (dead
     reckoning gets its first pose from the ground truth), "first" (every method does) or
-    "none". `scheduler`, `workers`, `dashboard`, `resume`, `progress`, `on_start` as in
+    "none". `dims`: 2 scores horizontal errors, 3 full 3-D ones. `scheduler`, `workers`,
+    `dashboard`, `resume`, `progress`, `on_start` as in
     `uwbfuse.fleet.batch_run`. A failing run or method fails its own rows only.
     """
     tic = time.perf_counter()
@@ -380,6 +392,8 @@ def montecarlo(
     from uwbfuse.sim.scenarios import get_scenario
 
     get_scenario(scenario)  # unknown scenario: one clear error before any cluster starts
+    if dims not in (2, 3):
+        raise FleetError(f"dims must be 2 (horizontal) or 3, got {dims}")
     if runs < 1:
         raise FleetError(f"--runs must be at least 1, got {runs}")
     if not (duration_s > 0 and math.isfinite(duration_s)):
@@ -407,7 +421,7 @@ def montecarlo(
 
     specs = [
         RunSpec(f"seed-{seed0 + i:05d}", scenario, float(duration_s), seed0 + i, chosen,
-                config_payload(config), times, start_align)
+                config_payload(config), times, start_align, dims)
         for i in range(runs)
     ]
     results: dict[str, list[dict[str, Any]]] = {}
@@ -441,7 +455,7 @@ def montecarlo(
     baseline = Method.IMU if Method.IMU in chosen and len(chosen) > 1 else None
     result = MonteCarloResult(
         scenario, runs, float(duration_s), chosen, times, baseline, rows, rmse, used, out,
-        info, time.perf_counter() - tic,
+        info, time.perf_counter() - tic, dims,
     )
     run_cols = ["seed", "method", "status", "error", "ate_rmse_m", "poses", "wall_s"]
     run_cols += [time_label(t) for t in times]
