@@ -327,3 +327,19 @@ def test_job_names_are_unique_and_tables_escape() -> None:
     assert names[0] != names[1] and names[2:] == ["bag_dir", "x_y"]
     md = table_markdown(["a", "b"], [{"a": "x|y", "b": float("nan")}, {"a": "p\nq", "b": 1.5}])
     assert "x\\|y" in md and "| p q | 1.5 |" in md
+
+
+def test_progress_bar_lines_on_a_pipe() -> None:
+    """Test that off a terminal the bar writes whole lines, throttled, always the last."""
+    import io
+
+    from uwbfuse.progress import ProgressBar
+
+    stream = io.StringIO()
+    with ProgressBar("logs", stream=stream, width=10, min_interval_s=3600) as bar:
+        for done in range(5):
+            bar(done, 4, f"job{done}")
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("logs [..........] 0/4")
+    assert lines[-1].startswith("logs [##########] 4/4") and lines[-1].endswith("job4")
+    assert len(lines) == 2  # the middle updates fall inside the interval
