@@ -290,9 +290,10 @@ class StreamingFilter:
 
         Returns gyro (N,3) rad/s and accel (N,3) m/s^2 (base frame) per interval, dt (N,) s,
         and for each stamp of `meas_t` the index of the interval boundary (0..N) it falls
-        on. Consumes the IMU samples with stamps in (t_cur, t_b]; the last becomes the held
-        sample. Before the first sample the first available one is held backwards; with no
-        sample at all the rows are NaN (the caller substitutes a still sample).
+        on (boundaries may repeat; repeated ones have dt = 0). Consumes the IMU samples
+        with stamps in (t_cur, t_b]; the last becomes the held sample. Before the first
+        sample the first available one is held backwards; with no sample at all the rows
+        are NaN (the caller substitutes a still sample).
         """
         assert self.t_cur is not None
         i0 = self._imu_i
@@ -300,13 +301,18 @@ class StreamingFilter:
         ts = self._imu_t[i0:i1]
         if self.held_w is None and i0 < len(self._imu_t):
             self.held_w, self.held_f = self._imu_w[i0], self._imu_f[i0]
-        bounds = np.unique(np.concatenate([[self.t_cur], ts, meas_t, [t_b]]))
-        dt = np.diff(bounds).astype(np.float64) / NS_PER_S
+        # Boundaries need not be unique: a zero-length interval changes nothing.
+        bounds = np.concatenate([[self.t_cur], ts, meas_t, [t_b]])
+        bounds.sort()
+        dt = np.diff(bounds) * (1.0 / NS_PER_S)
         j = np.searchsorted(ts, bounds[:-1], side="right") - 1
-        gyro = self._imu_w[i0 + np.maximum(j, 0)] if i1 > i0 else np.empty((len(dt), 3))
-        accel = self._imu_f[i0 + np.maximum(j, 0)] if i1 > i0 else np.empty((len(dt), 3))
-        before = j < 0
-        if np.any(before):
+        if i1 > i0:
+            jj = i0 + np.maximum(j, 0)
+            gyro, accel = self._imu_w[jj], self._imu_f[jj]
+        else:
+            gyro, accel = np.empty((len(dt), 3)), np.empty((len(dt), 3))
+        if j[0] < 0:  # intervals before the first new sample hold the last one
+            before = j < 0
             gyro[before] = np.nan if self.held_w is None else self.held_w
             accel[before] = np.nan if self.held_f is None else self.held_f
         if i1 > i0:
@@ -375,7 +381,9 @@ class StreamingFilter:
             self._imu_f = np.concatenate([self._imu_f[self._imu_i :], f])
             self._imu_i = 0
         wheel = self._wheel_in.take()
-        if wheel is not None:
+        # Wheels drive the process only without an IMU; with one, the process buffer is
+        # kept until the start (for the held sample and stamp), then no longer fed.
+        if wheel is not None and (not self.has_imu or self._init_pending):
             t, v, w = wheel
             self._wheel_t = np.concatenate([self._wheel_t[self._wheel_i :], t])
             self._wheel_v = np.concatenate([self._wheel_v[self._wheel_i :], v])

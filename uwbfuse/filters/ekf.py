@@ -20,13 +20,21 @@ widens it to the inputs the graph sees:
   (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D.
 - Covariance updates in Joseph form.
 
-Speed: the per-IMU-sample Python cost is kept small by mechanising the block of IMU samples
-between two measurement events at once (`models.mechanise`: one 3x3 product per sample,
-the rest vectorised) and propagating the covariance once per block with the exact product
-of the per-sample first-order error transitions (`models.block_transition`, closed form in
-cumulative sums). The block's process noise uses the trapezoidal approximation
-0.5 (Phi Qc Phi^T + Qc) T; blocks are short (the time between two UWB/wheel measurements,
-typically 5-50 ms), so the approximation error is negligible.
+Speed (the target is 200x real time, ~25 us per 200 Hz IMU sample): the covariance is
+propagated once per window of at most 0.1 s (one window per 10 Hz output step), not per
+IMU sample. In a window the IMU samples are mechanised at once (`models.mechanise`:
+vectorised Rodrigues increments, a log-depth prefix product of the rotations, cumulative
+sums for velocity and position), split at the stamps of the window's measurements. The
+transitions Phi(t_m) from the window start to every boundary come in closed form from
+cumulative sums (`models.Prefix`; the error dynamics are nilpotent). Each range and wheel
+speed is linearised on the nominal trajectory at its own stamp, h Phi(t_m) maps it to the
+error state at the window start, one stacked Joseph update corrects that error state, and
+Phi(window) carries the correction and the covariance to the window end, plus the
+process noise 0.5 (Phi Qc Phi^T + Qc) T (trapezoidal). Approximations: the process noise
+between the window start and a measurement is not seen by that measurement, and all of a
+window's measurements share one linearisation point (the nominal trajectory); with 0.1 s
+windows both effects are far below the UWB noise (checked: 10 ms windows give the same
+accuracy and NEES).
 
 Why not GTSAM's EKFs: `gtsam.NavStateImuEKF` / `InvariantEKFNavState` carry a 9-D NavState
 without IMU biases and take one Python call per IMU sample; the baseline needs the 15-D
@@ -166,8 +174,8 @@ class ErrorStateEkf(StreamingFilter):
         """
         nr = len(rt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
-        nan = np.isnan(gyro[:, 0])
-        if np.any(nan):  # no IMU sample yet: a still sample (zero acceleration)
+        if np.isnan(gyro[0, 0]):  # no IMU sample yet: a still sample (zero acceleration)
+            nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
         rs, vs, ps, s = mechanise(
@@ -187,12 +195,9 @@ class ErrorStateEkf(StreamingFilter):
             r_hat = np.sqrt(np.einsum("mi,mi->m", d, d))
             u = d / np.maximum(r_hat, 1e-6)[:, None]
             c = cross(tag_w, u)
-            h = np.empty((nr, N_ERR))
-            h[:, P_] = u
-            h[:, V_] = pre.t[k, None] * u
-            h[:, TH] = c - np.einsum("mi,mij->mj", u, pre.pd[k])
-            h[:, BG] = np.einsum("mi,mij->mj", u, pre.pe[k]) - np.einsum("mi,mij->mj", c, pre.c[k])
-            h[:, BA] = -np.einsum("mi,mij->mj", u, pre.pc[k])
+            rows = pre.rows[k]
+            # h Phi(t_m) with h = [u, 0, (R t) x u, 0, 0] on the error state at t_m.
+            h = (u[:, None, :] @ rows[:, P_] + c[:, None, :] @ rows[:, TH])[:, 0]
             y = rr - r_hat
             self.nis = y * y / (np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2)
             if self.gating:
@@ -205,16 +210,14 @@ class ErrorStateEkf(StreamingFilter):
             k = kidx[nr:]
             rt_ = np.swapaxes(rs[k], 1, 2)          # R^T at each wheel stamp
             vm = vs[k]
-            h = np.zeros((nw, 3, N_ERR))
-            h[:, :, V_] = rt_
-            h[:, :, TH] = rt_ @ (skew(vm) - pre.d[k])
-            h[:, :, BG] = rt_ @ pre.e[k]
-            h[:, :, BA] = -(rt_ @ pre.c[k])
+            rows = pre.rows[k]
+            # h Phi(t_m) with h = [0, R^T, R^T [v]x, 0, 0] on the error state at t_m.
+            h = rt_ @ (rows[:, V_] + skew(vm) @ rows[:, TH])
             z = np.zeros((nw, 3))
             z[:, 0] = wv
             hs.append(h.reshape(3 * nw, N_ERR))
             ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
-            rv.append(np.tile(self.r_wheel_diag, nw))
+            rv.append(np.broadcast_to(self.r_wheel_diag, (nw, 3)).reshape(-1))
         if self.planar:  # soft planar constraint (height z0, level) at the window start
             up = self.R[:, 2]
             h = np.zeros((3, N_ERR))

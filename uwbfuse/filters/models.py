@@ -64,15 +64,24 @@ def cross(a: F64, b: F64) -> F64:
 def so3_exp(phi: F64) -> F64:
     """Rodrigues: rotation vectors (..., 3) rad -> rotation matrices (..., 3, 3).
 
-    R = cos(t) I + sinc(t) [phi]x + 0.5 sinc(t/2)^2 phi phi^T with t = |phi|; numpy's
-    normalised sinc keeps it exact and branch-free at t -> 0.
+    R = cos(t) I + a [phi]x + b phi phi^T, t = |phi|, a = sin(t)/t, b = (1 - cos t)/t^2;
+    a and b by their Taylor series when every angle is below 0.05 rad (the per-sample
+    increments of the mechanisation; truncation error < 1e-13), else by sinc.
     """
     phi = np.asarray(phi, dtype=np.float64)
-    th = np.sqrt(np.einsum("...i,...i->...", phi, phi))
-    a = np.sinc(th / np.pi)
-    h = np.sinc(th / (2.0 * np.pi))
-    b = 0.5 * h * h
-    c = np.cos(th)
+    if phi.ndim == 1:
+        return _exp_one(float(phi[0]), float(phi[1]), float(phi[2]))
+    th2 = np.einsum("...i,...i->...", phi, phi)
+    if th2.size and float(th2.max()) < 2.5e-3:
+        a = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0))
+        b = 0.5 - th2 / 24.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0))
+        c = 1.0 - th2 * b
+    else:
+        th = np.sqrt(th2)
+        a = np.sinc(th / np.pi)
+        h = np.sinc(th / (2.0 * np.pi))
+        b = 0.5 * h * h
+        c = np.cos(th)
     x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
     bx, by, bz = b * x, b * y, b * z
     ax, ay, az = a * x, a * y, a * z
@@ -88,6 +97,26 @@ def so3_exp(phi: F64) -> F64:
     out[..., 1, 2] = byz - ax
     out[..., 2, 1] = byz + ax
     return out
+
+
+def _exp_one(x: float, y: float, z: float) -> F64:
+    """so3_exp of one rotation vector with Python floats (cheaper than numpy for one)."""
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-8:
+        a = 1.0 - th2 / 6.0
+        b = 0.5 - th2 / 24.0
+        c = 1.0 - 0.5 * th2
+    else:
+        th = math.sqrt(th2)
+        a = math.sin(th) / th
+        c = math.cos(th)
+        b = (1.0 - c) / th2
+    bx, by, bz = b * x, b * y, b * z
+    return np.array([
+        [c + bx * x, bx * y - a * z, bx * z + a * y],
+        [bx * y + a * z, c + by * y, by * z - a * x],
+        [bx * z - a * y, by * z + a * x, c + bz * z],
+    ])
 
 
 def cumulative_product(m: F64) -> F64:
@@ -255,25 +284,26 @@ def mechanise(
     return rs, v, p, s
 
 
+_ROWS0 = np.eye(N_ERR)[:9]
+
+
 @dataclass(frozen=True)
 class Prefix:
     """Error-state transitions from the block start to every boundary k = 0..N.
 
-    Per interval k (first order): dtheta += -R_k dt_k dbg; dv += -[s_k]x dtheta dt_k -
-    R_k dt_k dba; dp += dv dt_k. The dynamics are nilpotent (p <- v <- theta <- bg,
-    v <- ba), so the products of the per-interval transitions are cumulative sums:
-    with C_k = sum_{j<k} R_j dt_j, D_k = sum_{j<k} [s_j]x dt_j, E_k = sum_{j<k} [s_j]x dt_j
-    C_j, the blocks of Phi(k) are vtheta = -D_k, vbg = E_k, vba = -C_k, thetabg = -C_k,
-    pv = T_k, ptheta = -sum_{j<k} dt_j D_j, pbg = sum dt_j E_j, pba = -sum dt_j C_j.
+    Per interval k (first order, plus the 0.5 a dt^2 terms of the position): dtheta +=
+    -R_k dt_k dbg; dv += -[s_k]x dtheta dt_k - R_k dt_k dba; dp += dv dt_k. The dynamics
+    are nilpotent (p <- v <- theta <- bg, v <- ba), so the products of the per-interval
+    transitions are cumulative sums: with C_k = sum_{j<k} R_j dt_j, D_k = sum_{j<k}
+    [s_j]x dt_j, E_k = sum_{j<k} [s_j]x dt_j C_j, the blocks of Phi(k) are vtheta = -D_k,
+    vbg = E_k, vba = -C_k, thetabg = -C_k, pv = T_k, ptheta = -PD_k, pbg = PE_k,
+    pba = -PC_k (PD, PE, PC: the time integrals of D, E, C).
+
+    `rows[k]` (9,15) holds the p, v and theta rows of Phi(k); the bias rows are identity.
     """
 
     t: F64       # (N+1,) elapsed time, s
-    c: F64       # (N+1,3,3)
-    d: F64
-    e: F64
-    pd: F64
-    pe: F64
-    pc: F64
+    rows: F64    # (N+1, 9, 15)
 
     @classmethod
     def build(cls, rs: F64, s: F64, dt: F64) -> Prefix:
@@ -294,23 +324,25 @@ class Prefix:
         lv2[1:, 2] = 0.5 * (c[:-1] + c[1:]) * dtc
         np.cumsum(lv2[1:], axis=0, out=lv2[1:])
         e, pd, pc = lv2[:, 0], lv2[:, 1], lv2[:, 2]
-        pe = np.zeros((n + 1, 3, 3))
-        np.cumsum((e[:-1] + 0.5 * sxc) * dtc, axis=0, out=pe[1:])
         t = np.zeros(n + 1)
         np.cumsum(dt, out=t[1:])
-        return cls(t, c, d, e, pd, pe, pc)
+        rows = np.empty((n + 1, 9, N_ERR))
+        rows[:] = _ROWS0
+        rows[0, P_, BG] = 0.0
+        np.cumsum((e[:-1] + 0.5 * sxc) * dtc, axis=0, out=rows[1:, P_, BG])
+        rows[:, P_, V_] = t[:, None, None] * I3
+        rows[:, P_, TH] = -pd
+        rows[:, P_, BA] = -pc
+        rows[:, V_, TH] = -d
+        rows[:, V_, BG] = e
+        rows[:, V_, BA] = -c
+        rows[:, TH, BG] = -c
+        return cls(t, rows)
 
     def phi(self, k: int = -1) -> F64:
         """Transition (15,15) from the block start to boundary k."""
         phi = np.eye(N_ERR)
-        phi[P_, V_] = self.t[k] * I3
-        phi[P_, TH] = -self.pd[k]
-        phi[P_, BG] = self.pe[k]
-        phi[P_, BA] = -self.pc[k]
-        phi[V_, TH] = -self.d[k]
-        phi[V_, BG] = self.e[k]
-        phi[V_, BA] = -self.c[k]
-        phi[TH, BG] = -self.c[k]
+        phi[:9] = self.rows[k]
         return phi
 
 
