@@ -288,7 +288,8 @@ class GraphBuilder:
             # anchor can be in NLOS at once, and a loose prior would take that shared excess
             # for a calibration offset. The batch graph gets the configured prior.
             s_on = min(self.g.range_bias_sigma, ONLINE_COMMON_BIAS_SIGMA)
-            inc.graph.add(gtsam.PriorFactorDouble(C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_on)))
+            inc.graph.add(gtsam.PriorFactorDouble(
+                C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_on)))
             if self.full_graph is not None:
                 self.full_graph.add(gtsam.PriorFactorDouble(
                     C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))

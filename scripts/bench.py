@@ -1,0 +1,123 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Benchmark the graph estimators on simulated 10-minute and 1-hour logs.
+
+    python scripts/bench.py [--durations 600,3600] [--methods isam2,batch]
+                            [--scenario warehouse] [--work DIR]
+
+Each log is simulated once and written as a contract MCAP (cached in the work directory).
+Each (log, method) runs in a fresh child process so that peak memory (max RSS) is its own;
+the child reads the MCAP (timed: the real-time factor includes reading), runs the method
+through `pipeline.estimate`, and reports wall and CPU time, per-update latency percentiles
+(p50/p95/p99/max), the p99 of the first and the last tenth of the run (growth over the
+hour) and the batch LM time. A table is printed at the end. Targets (issue 3): isam2 >= 30x
+real time with p99 < 20 ms and no growth over the hour; batch >= 60x; peak memory < 2 GB.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def make_log(work: Path, scenario: str, duration_s: float) -> Path:
+    """Simulated contract log (cached by name)."""
+    from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.sim.simulator import simulate
+
+    path = work / f"{scenario}_{int(duration_s)}s.mcap"
+    if not path.exists():
+        tic = time.perf_counter()
+        write_contract_log(path, simulate(scenario, duration_s, 0))
+        print(f"# simulated {path.name} in {time.perf_counter() - tic:.1f} s", file=sys.stderr)
+    return path
+
+
+def run_one(log_path: str, method: str) -> dict:
+    """Child process: read, estimate, measure (returns a JSON-ready dict)."""
+    import resource
+
+    import numpy as np
+
+    from uwbfuse.config import Config
+    from uwbfuse.estimator import Method
+    from uwbfuse.io.reader import read_log
+    from uwbfuse.pipeline import estimate
+
+    cfg = Config()
+    c0 = time.process_time()
+    tic = time.perf_counter()
+    log = read_log(log_path, cfg)
+    read_s = time.perf_counter() - tic
+    res = estimate(log, Method(method), cfg)
+    wall = time.perf_counter() - tic
+    cpu = time.process_time() - c0
+    lat = np.asarray(res.report.get("update_latency_raw_s", res.step_latency_s)) * 1e3
+    tenth = max(len(lat) // 10, 1)
+    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "log": Path(log_path).name,
+        "method": method,
+        "duration_s": res.log_duration_s,
+        "read_s": read_s,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "rt": res.log_duration_s / wall,
+        "rt_cpu": res.log_duration_s / cpu,
+        "p50": float(np.percentile(lat, 50)),
+        "p95": float(np.percentile(lat, 95)),
+        "p99": float(np.percentile(lat, 99)),
+        "max": float(lat.max()),
+        "p99_first": float(np.percentile(lat[:tenth], 99)),
+        "p99_last": float(np.percentile(lat[-tenth:], 99)),
+        "batch_s": float(res.report.get("batch", {}).get("wall_s", 0.0)),
+        "peak_mb": rss_kb / 1024.0,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--durations", default="600,3600", help="log lengths, seconds")
+    ap.add_argument("--methods", default="isam2,batch")
+    ap.add_argument("--scenario", default="warehouse")
+    ap.add_argument("--work", default="/tmp/uwbfuse-bench")
+    ap.add_argument("--one", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(run_one(*args.one)))
+        return
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for d in (float(x) for x in args.durations.split(",")):
+        path = make_log(work, args.scenario, d)
+        for m in args.methods.split(","):
+            out = subprocess.run(
+                [sys.executable, __file__, "--one", str(path), m],
+                capture_output=True, text=True, env=dict(os.environ), check=False,
+            )
+            if out.returncode != 0:
+                print(f"# {path.name} {m} failed:\n{out.stderr[-2000:]}", file=sys.stderr)
+                continue
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(f"# done {path.name} {m}", file=sys.stderr)
+    hdr = ("log", "method", "log s", "read s", "wall s", "x RT", "x RT cpu", "p50 ms",
+           "p95 ms", "p99 ms", "max ms", "p99 first/last 10%", "LM s", "peak MB")
+    print("| " + " | ".join(hdr) + " |")
+    print("|" + "---|" * len(hdr))
+    for r in rows:
+        print(
+            f"| {r['log']} | {r['method']} | {r['duration_s']:.0f} | {r['read_s']:.1f} | "
+            f"{r['wall_s']:.1f} | {r['rt']:.1f} | {r['rt_cpu']:.1f} | {r['p50']:.2f} | "
+            f"{r['p95']:.2f} | {r['p99']:.2f} | {r['max']:.1f} | "
+            f"{r['p99_first']:.2f} / {r['p99_last']:.2f} | {r['batch_s']:.1f} | "
+            f"{r['peak_mb']:.0f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
