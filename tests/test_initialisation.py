@@ -202,3 +202,17 @@ def test_simulated_imu_uwb_warehouse_still_start() -> None:
     e_pos, e_yaw = errors(res.log, st)
     assert e_pos < 0.2
     assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
+
+
+def test_provisional_state_before_heading() -> None:
+    """test that a provisional state (position known, heading flagged unknown) exists while
+    try_initialise still waits for motion"""
+    log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 100.0), ROOM, 4.0, seed=1, lever=LEVER)
+    st, init = drive(log, ("imu", "wheel", "uwb"))
+    assert st is None
+    t_end = log.time_span_ns()[1]
+    prov = init.provisional(int(t_end))
+    assert prov is not None and prov.yaw_sigma == pytest.approx(math.pi)
+    p, _, _ = truth_at(log, t_end)
+    # Base position with the lever arm under yaw 0 (truth yaw 0.7 rad): within the lever.
+    assert np.linalg.norm(prov.position[:2] - p[:2]) < 0.1 + np.hypot(*LEVER[:2])

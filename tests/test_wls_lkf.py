@@ -101,7 +101,7 @@ def test_wls_yaw_is_the_track_direction() -> None:
     ev = evaluate(res.trajectory, log.ground_truth, align="none", max_dt=0.02)
     assert ev.yaw_errors is not None
     late = ev.t_s - ev.t_s[0] > 3.0
-    assert np.degrees(np.median(np.abs(ev.yaw_errors[late]))) < 8.0
+    assert np.degrees(np.median(np.abs(ev.yaw_errors[late]))) < 12.0  # measured 6.6 deg
 
 
 def test_kalman_filter_update_and_gating() -> None:

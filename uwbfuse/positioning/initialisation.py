@@ -60,6 +60,7 @@ _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
 _V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
 _Z_SIGMA_PLANAR = 0.5  # prior std of a wheeled base's height about init.base_height, m
 _Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_z, m
+_PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 
 
@@ -197,6 +198,8 @@ class Initialiser:
         self._last_attempt_ns: int | None = None
         self._f_level = np.array([0.0, 0.0, config.imu.gravity])  # mean f used to level
         self._still_s = 0.0
+        self._candidate: InitialState | None = None
+        self._r_level: F64 | None = None
         self.attempts = 0
         self.last_reason = "no data"
 
@@ -247,6 +250,7 @@ class Initialiser:
         if still is None:
             return None
         still_end_ns, still_ok, r_level, gyro_bias, accel_bias = still
+        self._r_level = r_level
         if not self.has_uwb:
             return self._no_ranges_state(t_ns, imu, wheel, r_level, gyro_bias, accel_bias,
                                          still_ok, still_end_ns)
@@ -285,6 +289,36 @@ class Initialiser:
         sv = math.sqrt(s2 * np.linalg.inv(a_mat.T @ a_mat)[1, 1])
         speed = float(np.linalg.norm(coef[1]))
         return speed > self.config.init.min_motion and speed > 4.0 * sv
+
+    def provisional(self, t_ns: int) -> InitialState | None:
+        """A best-effort state at t_ns before `try_initialise` succeeds, or None.
+
+        For estimators that must write poses from the first motion while the heading is not
+        yet determined: the latest heading solution (even if not accepted) when it is less
+        than `_RETRY_S` * 2 old, else the tag position from the recent UWB fixes with the
+        levelled attitude, yaw 0 and yaw_sigma = pi. Never use it as a filter's start state
+        without its yaw_sigma.
+        """
+        c = self._candidate
+        if c is not None and 0 <= t_ns - c.t_ns <= 2 * _RETRY_S * NS_PER_S:
+            return c
+        if not self.has_uwb:
+            return None
+        rng = self._upto(self._cat("rng"), t_ns)
+        if not rng or len(rng[0]) < 3:
+            return None
+        _tf, pf, okf = self._fixes(rng, int(t_ns - _PROVISIONAL_S * NS_PER_S))
+        if not np.any(okf):
+            return None
+        tag = np.median(pf[okf], axis=0)
+        spread = float(np.median(np.linalg.norm(pf[okf] - tag, axis=1))) * 1.4826
+        r_level = self._r_level if self._r_level is not None else np.eye(3)
+        return InitialState(
+            t_ns=int(t_ns), position=tag - r_level @ self.lever, R_map_base=r_level,
+            velocity=np.zeros(3), gyro_bias=np.zeros(3), accel_bias=np.zeros(3),
+            position_sigma=max(spread, float(np.linalg.norm(self.lever[:2])), 0.05),
+            yaw_sigma=math.pi, still=False,
+        )
 
     @staticmethod
     def _upto(cols: tuple[np.ndarray, ...], t_ns: int) -> tuple[np.ndarray, ...]:
@@ -687,18 +721,6 @@ class Initialiser:
         mad = float(np.median(np.abs(res))) * 1.4826
         inliers = float(np.mean(np.abs(res) < 3.0))
         margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
-        consistent = mad <= 3.0 and inliers >= 0.6
-        # After a full window without a determined heading, start anyway with the best
-        # solution and its (large) yaw std: the estimator must start from what it has.
-        waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
-            motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
-        determined = yaw_sigma <= cfg.max_yaw_sigma and margin >= 9.0
-        if not consistent or not (determined or waited):
-            self.last_reason = (
-                f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
-                f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})"
-            )
-            return None
         x = best.x
         p0, yaw0 = x[:3], float(x[3])
         v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
@@ -724,14 +746,29 @@ class Initialiser:
             grad[:, i_s:i_b] = rz @ trk.sens[-1]
         pcov = grad @ cov @ grad.T
         pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
-        log.debug("initialised at %.3f s: yaw %.1f deg (std %.2f deg)", t_now,
-                  math.degrees(math.atan2(r_now[1, 0], r_now[0, 0])), math.degrees(yaw_sigma))
-        self.last_reason = "initialised"
-        return InitialState(
+        state = InitialState(
             t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
             gyro_bias=bg, accel_bias=ba, position_sigma=pos_sigma, yaw_sigma=yaw_sigma,
             still=still_ok and at_rest,
         )
+        consistent = mad <= 3.0 and inliers >= 0.6
+        if consistent:
+            self._candidate = state
+        # After a full window without a determined heading, start anyway with the best
+        # solution and its (large) yaw std: the estimator must start from what it has.
+        waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
+            motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
+        determined = yaw_sigma <= cfg.max_yaw_sigma and margin >= 9.0
+        if not consistent or not (determined or waited):
+            self.last_reason = (
+                f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
+                f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})"
+            )
+            return None
+        log.debug("initialised at %.3f s: yaw %.1f deg (std %.2f deg)", t_now,
+                  math.degrees(state.yaw), math.degrees(yaw_sigma))
+        self.last_reason = "initialised"
+        return state
 
     # ------------------------------------------------------------------ UWB only
     def _uwb_only(self, t_ns: int, rng: tuple) -> InitialState | None:
