@@ -129,6 +129,7 @@ class StreamingFilter:
                 "Kalman baselines need an IMU or wheel odometry besides UWB ranges"
             )
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.sigma_r2 = config.uwb.sigma**2
         self.gating = config.ekf.gating
         self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
@@ -304,7 +305,7 @@ class StreamingFilter:
         # Boundaries need not be unique: a zero-length interval changes nothing.
         bounds = np.concatenate([[self.t_cur], ts, meas_t, [t_b]])
         bounds.sort()
-        dt = np.diff(bounds) * (1.0 / NS_PER_S)
+        dt = (bounds[1:] - bounds[:-1]) * (1.0 / NS_PER_S)
         j = np.searchsorted(ts, bounds[:-1], side="right") - 1
         if i1 > i0:
             jj = i0 + np.maximum(j, 0)
@@ -429,7 +430,7 @@ class StreamingFilter:
             later = t > t_ns
             if np.any(later):  # added ahead of this step: keep for the next one
                 self._range_in.chunks.insert(0, (t[later], a[later], r[later]))
-            if len(rt) > 1 and np.any(np.diff(rt) < 0):
+            if len(rt) > 1 and not bool((rt[1:] >= rt[:-1]).all()):
                 o = np.argsort(rt, kind="stable")
                 rt, ra, rr = rt[o], ra[o], rr[o]
         wt, wv = empty_i, np.zeros(0)

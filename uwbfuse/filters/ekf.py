@@ -133,6 +133,9 @@ class ErrorStateEkf(StreamingFilter):
         self.q_diag = ImuNoise.from_config(config.imu).diag()
         w = config.wheel
         self.r_wheel_diag = np.array([w.sigma_v**2, w.sigma_lateral**2, w.sigma_lateral**2])
+        self._r_wheel_cache: dict[int, F64] = {}
+        self._h_planar = np.zeros((3, N_ERR))
+        self._h_planar[0, 2] = 1.0
         g = config.graph
         self.r_planar = np.array([g.planar_sigma_z**2, g.planar_sigma_tilt**2,
                                   g.planar_sigma_tilt**2])
@@ -190,16 +193,20 @@ class ErrorStateEkf(StreamingFilter):
         used = np.ones(nr, dtype=bool)
         if nr:
             k = kidx[:nr]
-            tag_w = rs[k] @ self.tag_b
-            d = ps[k] + tag_w - self.anchor_pos[ra]
+            rows = pre.rows[k]
+            if self.has_tag_lever:
+                tag_w = rs[k] @ self.tag_b
+                d = ps[k] + tag_w - self.anchor_pos[ra]
+            else:
+                d = ps[k] - self.anchor_pos[ra]
             r_hat = np.sqrt(np.einsum("mi,mi->m", d, d))
             u = d / np.maximum(r_hat, 1e-6)[:, None]
-            c = cross(tag_w, u)
-            rows = pre.rows[k]
             # h Phi(t_m) with h = [u, 0, (R t) x u, 0, 0] on the error state at t_m.
-            h = (u[:, None, :] @ rows[:, P_] + c[:, None, :] @ rows[:, TH])[:, 0]
+            h = np.einsum("mi,mij->mj", u, rows[:, P_])
+            if self.has_tag_lever:
+                h += np.einsum("mi,mij->mj", cross(tag_w, u), rows[:, TH])
             y = rr - r_hat
-            self.nis = y * y / (np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2)
+            self.nis = y * y / (((h @ self.P) * h).sum(axis=1) + self.sigma_r2)
             if self.gating:
                 used = self.nis <= self.gate1
             hs.append(h[used])
@@ -217,14 +224,14 @@ class ErrorStateEkf(StreamingFilter):
             z[:, 0] = wv
             hs.append(h.reshape(3 * nw, N_ERR))
             ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
-            rv.append(np.broadcast_to(self.r_wheel_diag, (nw, 3)).reshape(-1))
+            rv.append(self._r_wheel_rows(nw))
         if self.planar:  # soft planar constraint (height z0, level) at the window start
-            up = self.R[:, 2]
-            h = np.zeros((3, N_ERR))
-            h[0, 2] = 1.0
-            h[1:, TH] = -skew(up)[:2]
-            hs.append(h)
-            ys.append(np.array([self.z0 - self.p[2], -up[0], -up[1]]))
+            ux, uy, uz = self.R[:, 2].tolist()
+            h = self._h_planar
+            h[1, 7], h[1, 8] = uz, -uy        # rows x, y of -[up]x on dtheta
+            h[2, 6], h[2, 8] = -uz, ux
+            hs.append(h.copy())
+            ys.append(np.array([self.z0 - self.p[2], -ux, -uy]))
             rv.append(self.r_planar)
         dx0 = None
         if hs:
@@ -240,6 +247,13 @@ class ErrorStateEkf(StreamingFilter):
         if dx0 is not None:
             self._inject(phi @ dx0)
         return used
+
+    def _r_wheel_rows(self, n: int) -> F64:
+        """Variances of n wheel measurements (forward, lateral, vertical each), cached."""
+        out = self._r_wheel_cache.get(n)
+        if out is None:
+            out = self._r_wheel_cache[n] = np.tile(self.r_wheel_diag, n)
+        return out
 
     def _inject(self, dx: F64) -> None:
         self.p = self.p + dx[P_]
@@ -338,7 +352,7 @@ class UnicycleEkf(StreamingFilter):
             h = np.stack([u[:, 0], u[:, 1],
                           -u[:, 0] * (oy + ddy) + u[:, 1] * (ox + ddx)], axis=1)
             y = rr - r_hat
-            self.nis = y * y / (np.einsum("mi,ij,mj->m", h, self.P, h) + self.sigma_r2)
+            self.nis = y * y / (((h @ self.P) * h).sum(axis=1) + self.sigma_r2)
             if self.gating:
                 used = self.nis <= self.gate1
             if np.any(used):

@@ -341,7 +341,7 @@ class Prefix:
 
     def phi(self, k: int = -1) -> F64:
         """Transition (15,15) from the block start to boundary k."""
-        phi = np.eye(N_ERR)
+        phi = I15.copy()
         phi[:9] = self.rows[k]
         return phi
 
@@ -417,7 +417,7 @@ def joseph_update(
     """
     ph = p @ h.T
     s = h @ ph
-    s[np.diag_indices_from(s)] += r
+    s.flat[:: len(r) + 1] += r
     k = np.linalg.solve(s, ph.T).T
     a = (I15 if p.shape[0] == 15 else np.eye(p.shape[0])) - k @ h
     p_new = a @ p @ a.T + (k * r) @ k.T
