@@ -216,6 +216,13 @@ class StreamingFilter:
         if t_ns <= self.t_cur:
             return
         rt, ra, rr, wt, wv = self._measurements(t_ns)
+        if t_ns - self.t_cur <= MAX_WINDOW_NS:  # one window (the 10 Hz output steps)
+            used = self._window(t_ns, rt, ra, rr, wt, wv)
+            if len(rt):
+                self._count(ra, used)
+            self.t_cur = t_ns
+            self._trim_inputs()
+            return
         n_win = -(-(t_ns - self.t_cur) // MAX_WINDOW_NS)
         edges = self.t_cur + (t_ns - self.t_cur) * np.arange(1, n_win + 1) // n_win
         r_end = np.searchsorted(rt, edges, side="right")
@@ -422,17 +429,21 @@ class StreamingFilter:
         assert self.t_cur is not None
         empty_i = np.zeros(0, dtype=np.int64)
         rt, ra, rr = empty_i, empty_i, np.zeros(0)
-        if self._ranges is not None:
+        if self._ranges is not None and len(self._ranges[0]):
             t, a, r = self._ranges
-            keep = (t > self.t_cur) & (t <= t_ns)
-            self.stale += int(np.count_nonzero((t <= self.t_cur) & (t > (self.t_init or 0))))
-            rt, ra, rr = t[keep], a[keep], r[keep]
-            later = t > t_ns
-            if np.any(later):  # added ahead of this step: keep for the next one
-                self._range_in.chunks.insert(0, (t[later], a[later], r[later]))
-            if len(rt) > 1 and not bool((rt[1:] >= rt[:-1]).all()):
-                o = np.argsort(rt, kind="stable")
-                rt, ra, rr = rt[o], ra[o], rr[o]
+            in_order = len(t) < 2 or bool((t[1:] >= t[:-1]).all())
+            if in_order and t[0] > self.t_cur and t[-1] <= t_ns:
+                rt, ra, rr = t, a, r   # the usual case: one sorted batch of this step
+            else:
+                keep = (t > self.t_cur) & (t <= t_ns)
+                self.stale += int(np.count_nonzero((t <= self.t_cur) & (t > (self.t_init or 0))))
+                rt, ra, rr = t[keep], a[keep], r[keep]
+                later = t > t_ns
+                if np.any(later):  # added ahead of this step: keep for the next one
+                    self._range_in.chunks.insert(0, (t[later], a[later], r[later]))
+                if not in_order:
+                    o = np.argsort(rt, kind="stable")
+                    rt, ra, rr = rt[o], ra[o], rr[o]
         wt, wv = empty_i, np.zeros(0)
         if self.has_imu and self._wheel_meas is not None and len(self._wheel_meas[0]):
             t, v, w = self._wheel_meas
