@@ -66,6 +66,34 @@ class Increment:
     graph: gtsam.NonlinearFactorGraph = field(default_factory=gtsam.NonlinearFactorGraph)
     values: gtsam.Values = field(default_factory=gtsam.Values)
     stamps: dict[int, float] = field(default_factory=dict)
+    # range factors to review later: (review batch, positions of each range's factors)
+    reviews: list[tuple[ReviewBatch, list[list[int]]]] = field(default_factory=list)
+    remove: list[int] = field(default_factory=list)  # smoother factor indices to remove
+
+    def merge(self, other: Increment) -> None:
+        """Append `other` (factor positions of its reviews shift by this graph's size)."""
+        off = self.graph.size()
+        self.graph.push_back(other.graph)
+        self.values.insert(other.values)
+        self.stamps.update(other.stamps)
+        self.remove.extend(other.remove)
+        for batch, slots in other.reviews:
+            self.reviews.append((batch, [[p + off for p in ps] for ps in slots]))
+
+
+@dataclass
+class ReviewBatch:
+    """Ranges of one keyframe interval, kept for one delayed re-classification."""
+
+    ka: int  # keyframe the ranges are attached to
+    anchor: np.ndarray
+    z: np.ndarray
+    seg: np.ndarray
+    tag_kf: np.ndarray
+    prior: np.ndarray  # HMM prior P(NLOS) at insertion
+    g: np.ndarray  # responsibility used for the factors
+    record: int  # index of the batch in RangeRecords
+    factors: list[list[int]] = field(default_factory=list)  # smoother indices per range
 
 
 @dataclass
@@ -140,7 +168,8 @@ class GraphBuilder:
         self.e_seg = np.full(m, -1, dtype=np.int64)  # newest NLOS state segment per anchor
         self.e_est = np.zeros(m)  # its estimate (m)
         self.e_stamp = np.zeros(m)  # its smoother timestamp (s since t0)
-        self.e_new: list[tuple[int, int]] = []  # (anchor, segment) created since last read
+        self.e_created: set[tuple[int, int]] = set()  # NLOS states in the current smoother
+        self.review = True  # delayed re-classification of ranges (online)
         self.z0 = planar_height(anchors, float(start.position[2]))
         self.pim_params = (
             imu_mod.preintegration_params(config.imu, config.extrinsics) if self.has_imu else None
@@ -370,32 +399,27 @@ class GraphBuilder:
         mix = self.mixture
         seg = (t - self.t0) // self.seg_ns
         g = np.zeros(len(t))
+        prior = np.full(len(t), self.mixture.p_nlos)
         if self.nlos:
             e_pred, e_var = self._predict_nlos_state(a, seg)
             r_nlos = z - pred - e_pred
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
             for anc in np.unique(a):
                 sel = np.flatnonzero(a == anc)
-                g[sel], self.anchor_p[anc] = hmm_filter(
+                g[sel], self.anchor_p[anc], prior[sel] = hmm_filter(
                     ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc])
             self._online_m_step(r_los, r_nlos, g)
+        else:
+            e_pred = np.zeros(len(t))
+        slots = [self.range_factors(inc, ka, int(a[j]), float(z[j]), tag_kf[j], int(seg[j]),
+                                    float(g[j]), float(e_pred[j])) for j in range(len(t))]
         sig_l = mix.sigma_los if self.nlos else self.cfg.uwb.sigma
         uwb = self.cfg.uwb
-        for j in range(len(t)):
-            aj = int(a[j])
-            t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf[j])
-            w_l = 1.0 - g[j]
-            if w_l > MIN_WEIGHT:
-                bkey = los_bias_key(aj, self.with_bias, float(g[j]))
-                zl = float(z[j]) if bkey is not None or not self.with_bias else float(
-                    z[j] - self.range_bias[aj])
-                inc.graph.add(range_factor(ka, aj, zl, sig_l / np.sqrt(w_l), t_tag, uwb, bkey))
-            if g[j] > MIN_WEIGHT:
-                key = self._nlos_state(inc, aj, int(seg[j]), float(e_pred[j]))
-                inc.graph.add(range_factor(ka, aj, float(z[j]), mix.sigma_nlos / np.sqrt(g[j]),
-                                           t_tag, uwb, key))
         w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
         rec = self.records
+        if self.nlos and self.review:
+            inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
+                                            len(rec.k)), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
         rec.z.append(z)
@@ -404,6 +428,27 @@ class GraphBuilder:
         rec.g_online.append(g)
         rec.w_online.append(w)
         rec.r_online.append(r_los)
+
+    def range_factors(
+        self, inc: Increment, ka: int, a: int, z: float, tag_kf: np.ndarray, seg: int, g: float,
+        e_guess: float,
+    ) -> list[int]:
+        """Add one range's LOS and NLOS factors (weights 1-g, g); return their positions."""
+        mix = self.mixture
+        uwb = self.cfg.uwb
+        t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
+        sig_l = mix.sigma_los if self.nlos else uwb.sigma
+        out = []
+        w_l = 1.0 - g
+        if w_l > MIN_WEIGHT:
+            out.append(inc.graph.size())
+            inc.graph.add(range_factor(ka, a, z, sig_l / np.sqrt(w_l), t_tag, uwb,
+                                       los_bias_key(a, self.with_bias)))
+        if g > MIN_WEIGHT:
+            key = self._nlos_state(inc, a, seg, e_guess)
+            out.append(inc.graph.size())
+            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / np.sqrt(g), t_tag, uwb, key))
+        return out
 
     def _predict_nlos_state(self, a: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean (m) and variance (m^2) of E(a, s) for each range, from the newest estimates."""
@@ -427,6 +472,15 @@ class GraphBuilder:
             inc.stamps[key] = now
             self.e_stamp[anchor] = now
             return key
+        if seg < self.e_seg[anchor] or (anchor, seg) in self.e_created:
+            # an older segment (delayed review): create it alone if it never existed
+            if (anchor, seg) not in self.e_created:
+                nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), None,
+                                   self.mixture)
+                inc.values.insert(key, guess)
+                self.e_created.add((anchor, seg))
+            inc.stamps[key] = now
+            return key
         prev = None
         # link only while the previous state is surely still inside the smoother window
         if self.e_seg[anchor] >= 0 and self.e_stamp[anchor] > now - self.g.lag + 1.0:
@@ -434,10 +488,10 @@ class GraphBuilder:
         nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), prev, self.mixture)
         inc.values.insert(key, guess)
         inc.stamps[key] = now
+        self.e_created.add((anchor, seg))
         self.e_stamp[anchor] = now
         self.e_seg[anchor] = seg
         self.e_est[anchor] = guess
-        self.e_new.append((anchor, seg))
         return key
 
     def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from typing import Any
 
 import gtsam
@@ -34,17 +35,20 @@ from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate
 from uwbfuse.graph import offline
-from uwbfuse.graph.builder import GraphBuilder, Increment
+from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
+from uwbfuse.graph.uwb import posterior
 from uwbfuse.graph.wheel import WheelTrack
-from uwbfuse.streams import AnchorMap, PoseStream
+from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
 BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
+REVIEW_DELAY_S = 1.0  # age (s) at which a range's LOS/NLOS responsibility is revisited
+REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -86,6 +90,9 @@ class GraphEstimator:
         self._update_latency: list[float] = []
         self._init_t: int | None = None
         self._batch: offline.BatchResult | None = None
+        self._reviews: deque[ReviewBatch] = deque()
+        self._review_inc: Increment | None = None
+        self._n_reviewed = 0
         self._batch_wall = 0.0
 
     # ------------------------------------------------------------------ input
@@ -144,14 +151,13 @@ class GraphEstimator:
                  state.t_ns * 1e-9, state.position_sigma, state.yaw_sigma)
 
     def _merge_pending(self) -> Increment:
-        if len(self._pending) == 1:
-            return self._pending.pop()
-        inc = Increment()
-        for p in self._pending:
-            inc.graph.push_back(p.graph)
-            inc.values.insert(p.values)
-            inc.stamps.update(p.stamps)
+        inc = self._pending[0]
+        for p in self._pending[1:]:
+            inc.merge(p)
         self._pending.clear()
+        if self._review_inc is not None:
+            inc.merge(self._review_inc)
+            self._review_inc = None
         return inc
 
     def _flush(self) -> None:
@@ -162,7 +168,10 @@ class GraphEstimator:
         inc = self._merge_pending()
         tic = time.perf_counter()
         try:
-            sm.update(inc)
+            idx = sm.update(inc)
+            for batch, slots in inc.reviews:
+                batch.factors = [[idx[p] for p in ps] for ps in slots]
+                self._reviews.append(batch)
             k = b.k
             b.pose = sm.pose(k)
             if b.has_imu:
@@ -172,9 +181,52 @@ class GraphEstimator:
                 b.range_bias = np.array([sm.range_bias(a) for a in range(len(self.anchors))])
             self._read_nlos_states(sm, b)
             self._save_leaving(sm, b)
+            self._review(sm, b)
         except RuntimeError as exc:
             self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
+
+    def _review(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """Re-classify ranges REVIEW_DELAY_S old with the smoothed estimate (fixed-lag EM).
+
+        At insertion a range is classified against a one-step prediction; a second
+        later its keyframe has been smoothed by the ranges that followed. Ranges whose
+        responsibility moved by more than REVIEW_CHANGE get their factors replaced in the
+        next update (iSAM2 factor removal); each range is reviewed once.
+        """
+        horizon = b.time_of(b.k) - round(REVIEW_DELAY_S * NS_PER_S)
+        mix = b.mixture
+        while self._reviews and b.time_of(self._reviews[0].ka) <= horizon:
+            rb = self._reviews.popleft()
+            try:
+                pose = sm.pose(rb.ka)
+            except (RuntimeError, IndexError):
+                continue
+            p = np.array([pose.transformFrom(t) for t in rb.tag_kf])
+            h = np.linalg.norm(p - self.anchors.positions[rb.anchor], axis=1)
+            d = b.range_bias[rb.anchor] if b.with_bias else np.zeros(len(h))
+            e = d + mix.mu_nlos
+            for j, (a, s) in enumerate(zip(rb.anchor.tolist(), rb.seg.tolist(), strict=True)):
+                if (a, s) in b.e_created:
+                    try:
+                        e[j] = sm.double(nlos_key(a, s))
+                    except (RuntimeError, IndexError):
+                        pass
+            r_los = rb.z - h - d
+            ll_l, ll_n = mix.log_likelihoods(r_los, rb.z - h - e, 0.03**2)
+            g = posterior(rb.prior, ll_l, ll_n)
+            changed = np.flatnonzero(np.abs(g - rb.g) > REVIEW_CHANGE)
+            if len(changed) == 0:
+                continue
+            if self._review_inc is None:
+                self._review_inc = Increment()
+            inc = self._review_inc
+            for j in changed.tolist():
+                inc.remove.extend(rb.factors[j])
+                b.range_factors(inc, rb.ka, int(rb.anchor[j]), float(rb.z[j]), rb.tag_kf[j],
+                                int(rb.seg[j]), float(g[j]), float(e[j]))
+            b.records.g_online[rb.record][changed] = g[changed]
+            self._n_reviewed += len(changed)
 
     def _read_nlos_states(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """Refresh the newest NLOS state estimate of each anchor still in the window."""
@@ -216,6 +268,9 @@ class GraphEstimator:
             self._kf_pose.setdefault(kk, b.pose if kk == k else self._kf_pose.get(kk, b.pose))
         self._saved_upto = k + 1
         b.e_seg[:] = -1
+        b.e_created.clear()
+        self._reviews.clear()
+        self._review_inc = None
         self.smoother = OnlineSmoother(self.cfg.graph.lag)
         inc = Increment()
         s = b.stamp(k)
@@ -362,6 +417,7 @@ class GraphEstimator:
                 "n": len(lat),
             }
         out["reanchor_events"] = list(self._reanchors)
+        out["ranges_reclassified_online"] = self._n_reviewed
         rec = b.records.arrays()
         if self._batch is not None:
             g, w = self._batch.nlos_prob, self._batch.weight

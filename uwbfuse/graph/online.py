@@ -39,11 +39,17 @@ class OnlineSmoother:
         self.extra_iterations = extra_iterations
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
 
-    def update(self, inc: Increment) -> None:
-        """Add one increment and re-solve (raises RuntimeError from GTSAM on failure)."""
-        self.smoother.update(inc.graph, inc.values, inc.stamps)
+    def update(self, inc: Increment) -> list[int]:
+        """Add one increment, remove its `remove` factors and re-solve.
+
+        Returns the smoother's indices of the new factors (in `inc.graph` order). Raises
+        RuntimeError from GTSAM on failure.
+        """
+        self.smoother.update(inc.graph, inc.values, inc.stamps, inc.remove)
+        idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
         for _ in range(self.extra_iterations):
             self.smoother.update()
+        return idx
 
     def pose(self, k: int) -> gtsam.Pose3:
         return self.smoother.calculateEstimatePose3(X(k))

@@ -104,22 +104,31 @@ class NlosModel:
 
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float
-) -> tuple[np.ndarray, float]:
+) -> tuple[np.ndarray, float, np.ndarray]:
     """Forward pass of one anchor's LOS/NLOS chain over its time-ordered ranges.
 
-    Returns P(NLOS) per range and the last value. Each step keeps the state with
-    probability 1 - p_switch and otherwise redraws it with the stationary rate p_nlos.
+    Returns P(NLOS) per range, the last value and the predicted prior of each range. Each
+    step keeps the state with probability 1 - p_switch and otherwise redraws it with the
+    stationary rate p_nlos.
     """
     out = np.empty(len(ll_los))
+    priors = np.empty(len(ll_los))
     p = p0
     d = np.clip(ll_nlos - ll_los, -50.0, 50.0)
     for i in range(len(d)):
         prior = (1.0 - p_switch) * p + p_switch * p_nlos
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
+        priors[i] = prior
         lo = math.log(prior / (1.0 - prior)) + d[i]
         p = 1.0 / (1.0 + math.exp(-lo))
         out[i] = p
-    return out, p
+    return out, p, priors
+
+
+def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
+    """P(NLOS) from a prior probability and the two log-likelihoods (vectorised)."""
+    lo = np.log(prior / (1.0 - prior)) + np.clip(ll_nlos - ll_los, -50.0, 50.0)
+    return 1.0 / (1.0 + np.exp(-lo))
 
 
 def hmm_smooth(
