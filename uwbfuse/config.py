@@ -127,7 +127,7 @@ class InitConfig(_Section):
         1.0, gt=0, description="without a still start: accel averaged for roll/pitch, seconds"
     )
     min_displacement: float = Field(
-        1.0, gt=0, description="UWB-track displacement needed before heading is solved, m"
+        0.5, gt=0, description="UWB-track displacement needed before heading is solved, m"
     )
     max_yaw_sigma: float = Field(
         0.05, gt=0, description="largest accepted std of the initial heading, rad"

@@ -60,6 +60,7 @@ _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
 _V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
 _Z_SIGMA_PLANAR = 0.5  # prior std of a wheeled base's height about init.base_height, m
 _Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_z, m
+_SIGMA_INFLATION = 2.0  # reported / least-squares std of the solved start state
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 
@@ -746,10 +747,12 @@ class Initialiser:
             grad[:, i_s:i_b] = rz @ trk.sens[-1]
         pcov = grad @ cov @ grad.T
         pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
+        # Reported stds are inflated: range errors are time-correlated (slow NLOS), which
+        # the white-noise covariance ignores (simulated NLOS sites: errors up to ~4x).
         state = InitialState(
             t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
-            gyro_bias=bg, accel_bias=ba, position_sigma=pos_sigma, yaw_sigma=yaw_sigma,
-            still=still_ok and at_rest,
+            gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
+            yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still_ok and at_rest,
         )
         consistent = mad <= 3.0 and inliers >= 0.6
         if consistent:
