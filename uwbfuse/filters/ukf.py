@@ -21,7 +21,8 @@ mass with UWB position fixes and no LiDAR here):
   the wheels.
 - UWB ranges are scalar measurements (tag lever arm included) with the EKF's chi-square
   gate per range; wheel speeds are base-frame velocity measurements (forward v, zero
-  lateral/vertical speed); soft planar roll/pitch constraint with wheels, as in the EKF.
+  lateral/vertical speed); soft planar height and roll/pitch constraint with wheels, as in
+  the EKF.
 
 Windows: as in the EKF, the time since the last step is cut into windows of at most 0.1 s.
 One sigma-point set is drawn at the window start and propagated through the window; every
