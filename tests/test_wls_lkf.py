@@ -72,7 +72,7 @@ def test_lkf_smooths_wls_in_room() -> None:
 
 def test_calibrated_nlos_model_helps_in_heavy_nlos() -> None:
     """test that [wls] values from calibrate-nlos on one log improve WLS on another"""
-    model = calibrate_nlos(_sim("warehouse-nlos", 60.0, 7), Config())
+    model = calibrate_nlos(_sim("warehouse-nlos", 40.0, 7), Config())
     cfg = Config(wls=model.to_toml())
     log = _sim("warehouse-nlos", 40.0, 0)
     # Measured (120 s): default 0.43-0.44 m, calibrated 0.20-0.25 m.

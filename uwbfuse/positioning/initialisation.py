@@ -253,8 +253,7 @@ class Initialiser:
         still_end_ns, still_ok, r_level, gyro_bias, accel_bias = still
         self._r_level = r_level
         if not self.has_uwb:
-            return self._no_ranges_state(t_ns, imu, wheel, r_level, gyro_bias, accel_bias,
-                                         still_ok, still_end_ns)
+            return self._no_ranges_state(t_ns, r_level, gyro_bias, accel_bias, still_ok)
         if not rng or len(rng[0]) < 3:
             self.last_reason = "waiting for ranges"
             return None
@@ -830,11 +829,9 @@ class Initialiser:
 
     # ------------------------------------------------------------------ no ranges
     def _no_ranges_state(
-        self, t_ns: int, imu: tuple, wheel: tuple, r_level: F64, gyro_bias: F64,
-        accel_bias: F64, still_ok: bool, still_end: int | None,
+        self, t_ns: int, r_level: F64, gyro_bias: F64, accel_bias: F64, still_ok: bool
     ) -> InitialState:
         """Without ranges: the map origin, heading zero, at t_ns (dead reckoning frame)."""
-        del imu, wheel, still_end
         self.last_reason = "initialised at the map origin (no ranges)"
         return InitialState(
             t_ns=int(t_ns), position=np.zeros(3), R_map_base=r_level, velocity=np.zeros(3),

@@ -29,7 +29,14 @@ from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config, RobustKernel, WlsConfig
 from uwbfuse.errors import EstimatorError
-from uwbfuse.positioning.multilateration import Fixes, gauss_newton, linear_ls, multilaterate
+from uwbfuse.positioning.multilateration import (
+    Fixes,
+    gauss_newton,
+    linear_ls,
+    multilaterate,
+    project_ranges,
+    select_nearest,
+)
 from uwbfuse.streams import AnchorMap, SensorLog
 
 F64 = NDArray[np.float64]
@@ -136,8 +143,6 @@ def weighted_fix(
     pos_a = anchors.positions
     rng = np.atleast_2d(np.asarray(rng, dtype=np.float64)).copy()
     if nearest is not None:
-        from uwbfuse.positioning.multilateration import select_nearest
-
         rng[~select_nearest(rng, nearest)] = np.nan
     los, nmean, nstd, prior = model.arrays(anchors)
     mix_var = (1 - prior) * los**2 + prior * (nstd**2 + nmean**2) - (prior * nmean) ** 2
@@ -162,8 +167,6 @@ def weighted_fix(
         if dim == 2:
             assert tag_z is not None
             z = np.broadcast_to(np.asarray(tag_z, dtype=np.float64), (n,))
-            from uwbfuse.positioning.multilateration import project_ranges
-
             xy, _ = linear_ls(pos_a[:, :2], project_ranges(corrected, pos_a[:, 2], z), w)
             x0 = np.column_stack([xy, z])
         else:
