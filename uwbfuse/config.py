@@ -147,6 +147,10 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
+    update_every: int = Field(
+        3, ge=1, description="keyframes per iSAM2 update (between updates the output is "
+        "the odometry/IMU prediction from the newest solved keyframe)"
+    )
     planar: Literal["auto", "on", "off"] = Field(
         "auto", description="soft planar-motion constraint: auto = on when the log has wheels"
     )
@@ -193,7 +197,7 @@ class GraphConfig(_Section):
         "between two of its ranges"
     )
     em_iterations: int = Field(
-        4, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
+        3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
     )
     lm_max_iterations: int = Field(
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"

@@ -250,6 +250,20 @@ class GraphBuilder:
             return out
         return [gtsam.Pose3() for _ in range(len(t_b))]
 
+    def tag_in_keyframe(
+        self, t_a: int, t_b: np.ndarray, pose_a: gtsam.Pose3, vel_a: np.ndarray
+    ) -> np.ndarray:
+        """Tag antenna position (N,3) at each time t_b in the base frame at t_a (metres)."""
+        if self.has_wheel and len(self.wheel):  # vectorised planar case
+            dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
+            rel = se2_between(dd[0][None, :], dd[1:])
+            c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
+            tx, ty, tz = self.tag
+            return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
+                                    np.full(len(rel), tz)])
+        return np.array([d.transformFrom(self.tag) for d in self.delta(t_a, t_b, pose_a, vel_a)]
+                        ).reshape(-1, 3)
+
     def predict(self, t: int) -> gtsam.Pose3:
         """Causal pose at t from the newest keyframe estimate plus odometry/IMU motion."""
         if self.k < 0:
@@ -390,9 +404,9 @@ class GraphBuilder:
         t, a, z = self._take_ranges(t_b)
         if len(t) == 0:
             return
-        deltas = self.delta(t_a, t, pose_a, vel_a)
-        tag_kf = np.array([d.transformFrom(self.tag) for d in deltas])
-        p_world = np.array([pose_a.transformFrom(p) for p in tag_kf])
+        tag_kf = self.tag_in_keyframe(t_a, t, pose_a, vel_a)
+        m = pose_a.matrix()
+        p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
         d_a = self.range_bias[a] if self.with_bias else np.zeros(len(a))
         r_los = z - pred - d_a

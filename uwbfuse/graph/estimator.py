@@ -77,7 +77,7 @@ class GraphEstimator:
         self.builder: GraphBuilder | None = None
         self.smoother: OnlineSmoother | None = None
         self._pre_ranges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        self._chunk = BATCH_CHUNK if method is Method.BATCH else 1
+        self._chunk = BATCH_CHUNK if method is Method.BATCH else config.graph.update_every
         self._pending: list[Increment] = []
         self._last_t: int | None = None
         self._steps: list[int] = []
@@ -132,8 +132,6 @@ class GraphEstimator:
             self._pending.append(b.next())
             if len(self._pending) >= self._chunk:
                 self._flush()
-        if self._chunk == 1:
-            self._flush()
 
     def _start(self, state: Any) -> None:
         self.builder = GraphBuilder(

@@ -199,7 +199,7 @@ def solve(
             g = gs[inv]
             mix.m_step(r_los, r_nlos, g, prior)
             sig_l = mix.sigma_los
-        if g_prev is not None and np.max(np.abs(g - g_prev), initial=0.0) < 0.05:
+        if g_prev is not None and np.mean(np.abs(g - g_prev) > 0.2) < 0.01:
             break
         g_prev = g
         values = lm_round(values, g, freeze)

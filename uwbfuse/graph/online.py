@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 
 
 def isam2_params() -> gtsam.ISAM2Params:
-    """iSAM2 settings: relinearise at 0.1 (tangent units) every update, cached linear factors."""
+    """iSAM2 settings: relinearise beyond 0.05 (tangent units) at every update."""
     p = gtsam.ISAM2Params()
     p.setRelinearizeThreshold(0.05)
     p.relinearizeSkip = 1
