@@ -313,11 +313,13 @@ def test_unreachable_scheduler_is_one_clear_error(
     with socket.socket() as s:  # a free port, closed again: nothing listens there
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    monkeypatch.setattr(fleet, "WORKER_WAIT_S", 1.0)
+    monkeypatch.setattr(fleet, "CONNECT_TIMEOUT_S", 1.0)
     address = f"tcp://127.0.0.1:{port}"
     expected = re.escape(f"cannot reach the Dask scheduler at {address}")
     with pytest.raises(FleetError, match=expected):
         batch_run(logs["good"][:1], METHOD, out_dir=tmp_path / "o", scheduler=address)
+    with pytest.raises(FleetError, match="bad Dask scheduler address 'nonsense'"):
+        batch_run(logs["good"][:1], METHOD, out_dir=tmp_path / "o", scheduler="nonsense")
 
 
 def test_job_names_are_unique_and_tables_escape() -> None:

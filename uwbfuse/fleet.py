@@ -44,6 +44,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +60,7 @@ DONE_FORMAT = 1
 WORKER_WAIT_S = 30.0
 """Seconds to wait for a scheduler, or for a worker when the cluster has none."""
 POLL_S = 2.0
+CONNECT_TIMEOUT_S = 10.0
 MAX_ERROR_CHARS = 400
 
 SUMMARY_COLUMNS: tuple[str, ...] = (
@@ -169,12 +171,20 @@ def uwbfuse_version() -> str:
 # The cluster
 
 
+class ClusterKind(StrEnum):
+    """Where jobs ran."""
+
+    LOCAL = "local"  # an in-process LocalCluster started for the jobs
+    REMOTE = "remote"  # an existing scheduler (--scheduler)
+    INLINE = "inline"  # no dask installed: one after another in this process
+    NONE = "none"  # nothing to run (every job resumed)
+
+
 @dataclass(frozen=True)
 class ClusterInfo:
-    """Where the jobs run: `kind` is "local" (in-process LocalCluster), "remote" (an
-    existing scheduler) or "inline" (no dask: one after another in this process)."""
+    """Where the jobs run: kind, scheduler address, workers, dashboard link."""
 
-    kind: str
+    kind: ClusterKind
     scheduler: str
     n_workers: int
     dashboard: str | None = None
@@ -182,10 +192,10 @@ class ClusterInfo:
 
 def describe_cluster(info: ClusterInfo, dashboard: bool = False) -> str:
     """One line saying where the jobs run (and the dashboard link, if asked for)."""
-    if info.kind == "inline":
+    if info.kind is ClusterKind.INLINE:
         line = "running in this process (dask.distributed not installed)"
     else:
-        where = "local Dask cluster" if info.kind == "local" else "Dask cluster"
+        where = "local Dask cluster" if info.kind is ClusterKind.LOCAL else "Dask cluster"
         line = f"{where} {info.scheduler}, {info.n_workers} worker(s)"
     if dashboard:
         line += f"; dashboard: {info.dashboard or 'not available (needs bokeh>=3.1)'}"
@@ -232,14 +242,16 @@ def cluster(
                 "pip install 'uwbfuse[fleet]' (or 'dask[distributed]')"
             )
         log.warning("dask.distributed is not installed: running the jobs one by one here")
-        yield None, ClusterInfo("inline", "", 1)
+        yield None, ClusterInfo(ClusterKind.INLINE, "", 1)
         return
 
     if scheduler:
         if workers is not None:
             log.warning("--workers %d ignored: the cluster at %s has its own", workers, scheduler)
         try:
-            client = distributed.Client(scheduler, timeout=WORKER_WAIT_S)
+            client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+        except ValueError as e:  # no port, unknown scheme, ...
+            raise FleetError(f"bad Dask scheduler address {scheduler!r}: {e}") from None
         except (OSError, TimeoutError) as e:
             raise FleetError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
         try:
@@ -252,7 +264,7 @@ def cluster(
                 ) from None
             _check_worker_versions(client, scheduler)
             info = ClusterInfo(
-                "remote", scheduler, len(client.scheduler_info()["workers"]),
+                ClusterKind.REMOTE, scheduler, len(client.scheduler_info()["workers"]),
                 client.dashboard_link if dashboard else None,
             )
             yield client, info
@@ -260,25 +272,30 @@ def cluster(
             client.close()
         return
 
+    import dask
+
     n = local_worker_count(n_jobs, workers)
+    # The workers' statistical profiler costs ~7 % CPU on long jobs and only feeds the
+    # dashboard: keep it for --dashboard.
     try:
-        local = distributed.LocalCluster(
-            n_workers=n,
-            threads_per_worker=1,
-            processes=True,
-            host="127.0.0.1",
-            # Without --dashboard, the scheduler's HTTP server still runs: on a free port.
-            dashboard_address=":8787" if dashboard else "127.0.0.1:0",
-            scheduler_kwargs={"dashboard": dashboard},
-            silence_logs=logging.ERROR,
-        )
+        with dask.config.set({"distributed.worker.profile.enabled": dashboard}):
+            local = distributed.LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                # Without --dashboard the scheduler's HTTP server still runs: on a free port.
+                dashboard_address=":8787" if dashboard else "127.0.0.1:0",
+                scheduler_kwargs={"dashboard": dashboard},
+                silence_logs=logging.ERROR,
+            )
     except OSError as e:
         raise FleetError(f"cannot start a local Dask cluster: {e}") from None
     try:
         client = distributed.Client(local)
         try:
             link = client.dashboard_link if dashboard else None
-            yield client, ClusterInfo("local", local.scheduler_address, n, link)
+            yield client, ClusterInfo(ClusterKind.LOCAL, local.scheduler_address, n, link)
         finally:
             client.close()
     finally:
@@ -330,13 +347,15 @@ def run_jobs(
     `on_result` as it arrives. `progress(done, total, note)` counts `done_before` jobs
     (skipped on resume) as already done. Returns where the jobs ran."""
     total = done_before + len(jobs)
-    if progress is not None:
-        progress(done_before, total, "resumed" if done_before else "")
     if not jobs:
-        return ClusterInfo("none", "", 0)
+        if progress is not None:
+            progress(done_before, total, "resumed")
+        return ClusterInfo(ClusterKind.NONE, "", 0)
     with cluster(scheduler, workers, dashboard, n_jobs=len(jobs)) as (client, info):
         if on_start is not None:
             on_start(info)
+        if progress is not None:
+            progress(done_before, total, f"{done_before} resumed" if done_before else "")
         done = done_before
         if client is None:
             for job in jobs:
