@@ -32,7 +32,12 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
 from uwbfuse.estimator import Method, PoseEstimate
-from uwbfuse.positioning.multilateration import default_tag_z, group_epochs, select_nearest
+from uwbfuse.positioning.multilateration import (
+    default_tag_z,
+    epoch_window_ns,
+    group_epochs,
+    select_nearest,
+)
 from uwbfuse.positioning.nlos_model import (
     NlosModel,
     NlosParams,
@@ -46,6 +51,7 @@ __all__ = ["EpochFixer", "TagFix", "TrackHeading", "WlsEstimator", "calibrate_nl
 
 _KEEP_S = 3.0  # seconds of ranges kept in the buffer
 _HISTORY_S = 10.0  # seconds of fixes kept for the track direction
+_WINDOW_ADAPT_N = 2000  # ranges over which the epoch length keeps adapting to the cycle
 _OUTLIER_GATE = 4.0  # normalised range residual that triggers fault exclusion
 _MAX_SPEED = 3.0  # fastest plausible tag speed for the jump gate, m/s
 _JUMP_FLOOR = 0.5  # jump always allowed between consecutive fixes, m
@@ -96,7 +102,9 @@ class EpochFixer:
         self.model = NlosModel.from_config(wls) if wls.weighted else NlosModel(
             NlosParams(config.uwb.sigma, 0.0, 1.0, 0.0)
         )
-        self.window_ns = round(wls.window * NS_PER_S)
+        self.base_window_ns = round(wls.window * NS_PER_S)
+        self.window_ns = self.base_window_ns
+        self._n_seen = 0
         self._t = np.zeros(0, dtype=np.int64)
         self._a = np.zeros(0, dtype=np.int32)
         self._r = np.zeros(0)
@@ -116,6 +124,7 @@ class EpochFixer:
         """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
         if not len(t_ns):
             return
+        self._n_seen += len(t_ns)
         self._t = np.concatenate([self._t, np.asarray(t_ns, dtype=np.int64)])
         self._a = np.concatenate([self._a, np.asarray(anchor, dtype=np.int32)])
         self._r = np.concatenate([self._r, np.asarray(rng, dtype=np.float64)])
@@ -129,6 +138,9 @@ class EpochFixer:
         if not len(self._t):
             return None
         sel = self._t <= t_ns
+        if self._n_seen < _WINDOW_ADAPT_N and len(self._t) >= 3 * len(self.anchors):
+            # Adapt the epoch length to the round-robin cycle seen so far.
+            self.window_ns = epoch_window_ns(self._t, self._a, self.base_window_ns)
         grid, stamps = group_epochs(self._t[sel], self._a[sel], self._r[sel],
                                     len(self.anchors), np.array([t_ns]), self.window_ns)
         if only_new and self._last_stamps is not None and np.array_equal(
@@ -220,6 +232,7 @@ class EpochFixer:
             "fixes": self.n_fixes,
             "degenerate_epochs": self.n_degenerate,
             "fix_dim": self.dim,
+            "epoch_window_s": self.window_ns / NS_PER_S,
             "tag_height_m": self.tag_z if self.dim == 2 else None,
             "mean_nlos_probability": self.nlos_prob_sum / self.nlos_prob_n
             if self.nlos_prob_n else None,

@@ -32,16 +32,17 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
+    epoch_window_ns,
     epochs_by_window,
     group_epochs,
     multilaterate,
@@ -55,6 +56,9 @@ F64 = NDArray[np.float64]
 _BLOCK_S = 0.1  # standstill test block length, s
 _RETRY_S = 0.5  # data time between two heading solves, s
 _N_SEEDS = 8
+_GYRO_BIAS_MAX = 0.1  # largest gyro turn-on bias a standstill may show, rad/s
+_SOFT_L1_SCALE = 2.0  # soft-L1 scale of the heading solve, in range sigmas
+_MAX_RANGES = 480  # ranges used by one heading solve (evenly thinned beyond)
 _IMU_WINDOW_S = 8.0  # longest window of an IMU-only (strapdown) track, s
 _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
 _V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
@@ -346,8 +350,10 @@ class Initialiser:
         block_end = (t0 + (np.arange(1, n_blocks + 1) * _BLOCK_S * NS_PER_S)).astype(np.int64)
         still = np.ones(n_blocks, dtype=bool)
         if imu and n_blocks:
+            # Gyro: the spread about the block mean (noise) below the threshold; the block
+            # mean itself may hold a turn-on bias up to _GYRO_BIAS_MAX.
             gyro_thr = cfg.standstill_gyro_max
-            still &= _block_still(imu[0], imu[1], block_end, gyro_thr, None)
+            still &= _block_still(imu[0], imu[1], block_end, None, gyro_thr)
             still &= _block_still(imu[0], imu[2], block_end, None, cfg.standstill_accel_std_max)
         if wheel and n_blocks:
             wv = np.column_stack([wheel[1], np.zeros_like(wheel[1])])
@@ -360,12 +366,19 @@ class Initialiser:
             idx = np.searchsorted(imu[0], block_end, side="right")
             csum = np.vstack([np.zeros((1, 3)), np.cumsum(imu[2], axis=0)])
             cnt = np.maximum(np.diff(np.concatenate([[0], idx])), 1)
-            bmean = (csum[idx] - csum[np.concatenate([[0], idx[:-1]])]) / cnt[:, None]
-            ref = csum[np.concatenate([[0], idx[:-1]])] / np.maximum(
-                np.concatenate([[0], idx[:-1]]), 1)[:, None]
+            prev = np.concatenate([[0], idx[:-1]])
+            bmean = (csum[idx] - csum[prev]) / cnt[:, None]
+            ref = csum[prev] / np.maximum(prev, 1)[:, None]
             dev = np.linalg.norm(bmean - ref, axis=1)
             dev[0] = 0.0
             still &= dev < cfg.standstill_accel_std_max
+            gsum = np.vstack([np.zeros((1, 3)), np.cumsum(imu[1], axis=0)])
+            gmean = (gsum[idx] - gsum[prev]) / cnt[:, None]
+            gref = gsum[prev] / np.maximum(prev, 1)[:, None]
+            gdev = np.linalg.norm(gmean - gref, axis=1)
+            gdev[0] = 0.0
+            still &= (gdev < cfg.standstill_gyro_max) & (
+                np.linalg.norm(gmean, axis=1) < _GYRO_BIAS_MAX)
         moving = np.flatnonzero(~still)
         n_still = int(moving[0]) if len(moving) else n_blocks
         still_s = n_still * _BLOCK_S
@@ -417,7 +430,7 @@ class Initialiser:
         if t_from is not None:
             sel = t >= t_from
             t, a, r = t[sel], a[sel], r[sel]
-        window_ns = int(self.config.wls.window * NS_PER_S)
+        window_ns = epoch_window_ns(t, a, int(self.config.wls.window * NS_PER_S))
         ep = epochs_by_window(t, window_ns)
         if not len(ep):
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=bool)
@@ -582,7 +595,10 @@ class Initialiser:
         self._last_attempt_ns = t_ns
         self.attempts += 1
         t, a, r = rng
-        sel = t >= w_start
+        sel = np.flatnonzero(t >= w_start)
+        if len(sel) > _MAX_RANGES:
+            # Evenly thinned: the solve's cost grows with the ranges, its accuracy hardly.
+            sel = sel[np.round(np.linspace(0, len(sel) - 1, _MAX_RANGES)).astype(int)]
         tr = t[sel].astype(np.float64) / NS_PER_S
         ar, rr = a[sel], r[sel]
         ts0 = w_start / NS_PER_S
@@ -666,22 +682,6 @@ class Initialiser:
             jac[row, 2] = 1.0 / z_sigma
             return f, jac
 
-        cache: dict[bytes, tuple[F64, F64]] = {}
-
-        def fun(x: F64) -> F64:
-            key = x.tobytes()
-            if key not in cache:
-                cache.clear()
-                cache[key] = fun_jac(x)
-            return cache[key][0]
-
-        def jac(x: F64) -> F64:
-            key = x.tobytes()
-            if key not in cache:
-                cache.clear()
-                cache[key] = fun_jac(x)
-            return cache[key][1]
-
         tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
         v_seed = np.zeros(3)
         if solve_v and len(tf) >= 2:
@@ -696,12 +696,9 @@ class Initialiser:
             x0[3] = yaw_s
             if solve_v:
                 x0[i_v:i_v + 3] = v_seed
-            try:
-                sol = least_squares(fun, x0, jac=jac, loss="soft_l1", f_scale=2.0,
-                                    max_nfev=50)
-            except (ValueError, np.linalg.LinAlgError):
-                continue
-            sols.append(sol)
+            sol = robust_lm(fun_jac, x0, n_r, _SOFT_L1_SCALE)
+            if sol is not None:
+                sols.append(sol)
         if not sols:
             self.last_reason = "heading solve failed"
             return None
@@ -838,6 +835,68 @@ class Initialiser:
             gyro_bias=gyro_bias.copy(), accel_bias=accel_bias.copy(), position_sigma=0.0,
             yaw_sigma=0.0, still=still_ok,
         )
+
+
+@dataclass
+class LmResult:
+    """`robust_lm` result: solution x, robust cost, residuals fun and the Jacobian `jac`
+    scaled by the square roots of the final IRLS weights (J^T J approximates the Hessian)."""
+
+    x: F64
+    cost: float
+    fun: F64
+    jac: F64
+
+
+def _soft_l1(f: F64, n_r: int, scale: float) -> tuple[float, F64]:
+    """Cost 0.5 sum rho and IRLS weights: soft-L1 on the first n_r residuals, L2 after."""
+    z = (f[:n_r] / scale) ** 2
+    cost = float(np.sum(scale**2 * (np.sqrt(1.0 + z) - 1.0)) + 0.5 * np.sum(f[n_r:] ** 2))
+    w = np.ones_like(f)
+    w[:n_r] = 1.0 / np.sqrt(1.0 + z)
+    return cost, w
+
+
+def robust_lm(
+    fun_jac: Callable[[F64], tuple[F64, F64]], x0: F64, n_r: int, scale: float,
+    max_iter: int = 40, tol: float = 1e-7,
+) -> LmResult | None:
+    """Levenberg-Marquardt with IRLS soft-L1 weights (scale in residual units) on the first
+    n_r residuals and plain least squares on the rest (priors).
+
+    Solves the small normal equations directly: no dense SVD per iteration, whose
+    multi-threaded BLAS cost dominated scipy's least_squares for this problem.
+    """
+    x = np.array(x0, dtype=np.float64)
+    f, jac = fun_jac(x)
+    cost, w = _soft_l1(f, n_r, scale)
+    lam = 1e-3
+    eye = np.eye(len(x))
+    for _ in range(max_iter):
+        jw = jac * w[:, None]
+        a_mat = jac.T @ jw
+        g = jw.T @ f
+        try:
+            dx = np.linalg.solve(a_mat + lam * (np.diag(np.diag(a_mat)) + 1e-9 * eye), -g)
+        except np.linalg.LinAlgError:
+            return None
+        x_new = x + dx
+        f_new, jac_new = fun_jac(x_new)
+        cost_new, w_new = _soft_l1(f_new, n_r, scale)
+        if np.isfinite(cost_new) and cost_new <= cost:
+            x, f, jac, w = x_new, f_new, jac_new, w_new
+            done = cost - cost_new < tol * max(cost, 1.0) and np.max(np.abs(dx)) < 1e-4
+            cost = cost_new
+            lam = max(lam / 3.0, 1e-9)
+            if done:
+                break
+        else:
+            lam *= 5.0
+            if lam > 1e8:
+                break
+    if not np.all(np.isfinite(x)):
+        return None
+    return LmResult(x, cost, f, jac * np.sqrt(w)[:, None])
 
 
 def _wrap(a: float) -> float:

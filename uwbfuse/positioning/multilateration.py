@@ -322,3 +322,25 @@ def epochs_by_window(t_ns: NDArray[np.int64], window_ns: int) -> NDArray[np.int6
     bins = (t_ns - t_ns[0]) // window_ns
     last = np.flatnonzero(np.diff(bins, append=bins[-1] + 1) != 0)
     return t_ns[last].astype(np.int64)
+
+
+def epoch_window_ns(
+    t_ns: NDArray[np.int64], anchor: NDArray[np.integer], base_window_ns: int,
+    max_window_ns: int = 2_000_000_000,
+) -> int:
+    """Epoch length for `group_epochs`: at least `base_window_ns`, and long enough for one
+    round-robin cycle (1.2 x the median per-anchor range period), capped at max_window_ns.
+
+    Slow round robins (e.g. 4 anchors at 2 Hz each) otherwise leave every epoch with fewer
+    ranges than a fix needs.
+    """
+    periods = []
+    for a in np.unique(anchor):
+        ta = t_ns[anchor == a]
+        if len(ta) >= 3:
+            periods.append(float(np.median(np.diff(ta))))
+    if not periods:
+        return int(base_window_ns)
+    cycle = 1.2 * float(np.median(periods))
+    return int(min(max(base_window_ns, cycle), max(max_window_ns, base_window_ns)))
+
