@@ -100,15 +100,21 @@ class StreamingFilter:
     #: or the mean normalised innovation squared (NIS; 1 for a consistent filter) of the
     #: last RECENT accepted ranges exceeds NIS_FACTOR chi2.ppf(gate_probability, RECENT) /
     #: RECENT, the state is probably off (wheel slip, a bad start) rather than the ranges
-    #: wrong, and the position/heading covariance is inflated (`_inflate`).
+    #: wrong, and the position/heading covariance is inflated (`_inflate`). Only with gating
+    #: on (`[ekf] gating = false` asks for the plain filter).
     RECENT = 12
     GATED_MAX = 6
     NIS_FACTOR = 3.0
     #: Variances added by `_inflate`: horizontal position m^2, yaw rad^2, velocity (m/s)^2
     #: (0.2 m, 0.1 rad, 0.2 m/s; larger steps let NLOS-biased ranges drag the estimate).
+    #: A recovery within STREAK_NS of the previous one multiplies them by 4 more (a
+    #: diverged filter, e.g. from a bad start state, opens up until ranges pass again),
+    #: up to 4^MAX_STREAK.
     INFLATE_POS = 0.04
     INFLATE_YAW = 0.01
     INFLATE_VEL = 0.04
+    STREAK_NS = 2_000_000_000
+    MAX_STREAK = 5
 
     def __init__(
         self,
@@ -168,6 +174,8 @@ class StreamingFilter:
             self.NIS_FACTOR * gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
         )
         self.gate_resets = 0
+        self._streak = 0
+        self._last_reset: int | None = None
         self.stale = 0
 
     # -- Estimator protocol -------------------------------------------------------------
@@ -282,8 +290,8 @@ class StreamingFilter:
         """
         raise NotImplementedError
 
-    def _inflate(self) -> None:
-        """Widen the position uncertainty after a run of gated ranges (lock-out recovery)."""
+    def _inflate(self, scale: float) -> None:
+        """Widen the uncertainty after a run of gated ranges: `scale` x the INFLATE_* steps."""
         raise NotImplementedError
 
     def _pose(self) -> tuple[F64, F64]:
@@ -372,10 +380,14 @@ class StreamingFilter:
         nis = self.nis[used] if len(self.nis) == len(used) else self.nis
         self._recent_nis = (self._recent_nis + nis.tolist())[-self.RECENT :]
         full = len(self._recent_nis) == self.RECENT
-        if sum(self._recent) >= self.GATED_MAX or (
+        if self.gating and (sum(self._recent) >= self.GATED_MAX or (
             full and sum(self._recent_nis) > self.nis_max * self.RECENT
-        ):
-            self._inflate()
+        )):
+            assert self.t_cur is not None
+            recent = self._last_reset is not None and self.t_cur - self._last_reset < self.STREAK_NS
+            self._streak = min(self._streak + 1, self.MAX_STREAK) if recent else 0
+            self._last_reset = self.t_cur
+            self._inflate(4.0**self._streak)
             self.gate_resets += 1
             self._recent = []
             self._recent_nis = []

@@ -64,6 +64,7 @@ from uwbfuse.filters.models import (
     ImuNoise,
     Prefix,
     block_noise,
+    cap_variances,
     cross,
     imu_rotation,
     joseph_update,
@@ -86,6 +87,9 @@ STILL_VELOCITY_SIGMA = 0.02
 #: Initial roll/pitch std, rad (levelled from gravity when still; a guess otherwise).
 TILT_SIGMA_STILL = 0.02
 TILT_SIGMA_MOVING = 0.05
+#: Largest position variance (m^2) and velocity variance ((m/s)^2) after recoveries.
+INFLATE_CAP_POS = 100.0
+INFLATE_CAP_VEL = 25.0
 #: Smallest initial height std, m.
 Z_SIGMA_MIN = 0.3
 
@@ -262,12 +266,23 @@ class ErrorStateEkf(StreamingFilter):
         self.bg = self.bg + dx[BG]
         self.ba = self.ba + dx[BA]
 
-    def _inflate(self) -> None:
-        """Divergence recovery: widen position (horizontal only when planar), velocity, yaw."""
-        a = self.INFLATE_POS
+    def _inflate(self, scale: float) -> None:
+        """Divergence recovery: widen position (horizontal only when planar), velocity and
+        yaw by `scale` x the base steps; from the third recovery in a row (scale >= 16) also
+        roll/pitch and the accelerometer bias, up to their start/prior spreads."""
+        a = self.INFLATE_POS * scale
         self.P[P_, P_] += np.diag([a, a, 0.0 if self.planar else a])
-        self.P[V_, V_] += np.eye(3) * self.INFLATE_VEL
-        self.P[8, 8] += self.INFLATE_YAW
+        self.P[V_, V_] += np.eye(3) * self.INFLATE_VEL * scale
+        self.P[8, 8] += self.INFLATE_YAW * scale
+        # Keep P bounded through repeated recoveries.
+        cap_variances(self.P, np.array([INFLATE_CAP_POS] * 3 + [INFLATE_CAP_VEL] * 3
+                                       + [math.pi**2] * 3))
+        if scale >= 16.0:
+            for i in (6, 7):
+                self.P[i, i] = max(self.P[i, i], TILT_SIGMA_MOVING**2)
+            ba2 = self.config.imu.accel_bias_sigma**2
+            for i in range(12, 15):
+                self.P[i, i] = max(self.P[i, i], ba2)
 
     def _pose(self) -> tuple[F64, F64]:
         return self.p.copy(), quat_xyzw_from_matrix(self.R)
@@ -369,11 +384,12 @@ class UnicycleEkf(StreamingFilter):
             self.x = self.x + phi @ dx0
         return used
 
-    def _inflate(self) -> None:
-        """Divergence recovery: widen x, y and yaw."""
-        self.P[0, 0] += self.INFLATE_POS
-        self.P[1, 1] += self.INFLATE_POS
-        self.P[2, 2] += self.INFLATE_YAW
+    def _inflate(self, scale: float) -> None:
+        """Divergence recovery: widen x, y and yaw by `scale` x the base steps."""
+        self.P[0, 0] += self.INFLATE_POS * scale
+        self.P[1, 1] += self.INFLATE_POS * scale
+        self.P[2, 2] += self.INFLATE_YAW * scale
+        cap_variances(self.P, np.array([INFLATE_CAP_POS, INFLATE_CAP_POS, math.pi**2]))
 
     def _pose(self) -> tuple[F64, F64]:
         return np.array([self.x[0], self.x[1], self.z0]), quat_xyzw_from_yaw(float(self.x[2]))

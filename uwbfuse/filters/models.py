@@ -406,6 +406,19 @@ def unicycle_transition(
     return phi, q
 
 
+def cap_variances(p: F64, caps: F64) -> None:
+    """Scale the leading rows/columns of covariance p in place so that p_ii <= caps[i].
+
+    Scaling row and column i by the same factor keeps p positive semi-definite.
+    """
+    n = len(caps)
+    d = np.diagonal(p)[:n]
+    if np.any(d > caps):
+        f = np.sqrt(np.minimum(caps / np.maximum(d, 1e-300), 1.0))
+        p[:n, :] *= f[:, None]
+        p[:, :n] *= f[None, :]
+
+
 def joseph_update(
     p: F64, h: F64, r: F64, y: F64
 ) -> tuple[F64, F64, F64, F64]:
