@@ -147,6 +147,11 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
+    imu_noise_inflation: float = Field(
+        10.0, gt=0, description="factor on the IMU noise densities and bias random walks in "
+        "the preintegration: room for the unmodelled errors of consumer MEMS (scale, "
+        "misalignment, vibration); 1 = trust the [imu] figures as they are"
+    )
     update_every: int = Field(
         3, ge=1, description="keyframes per iSAM2 update (between updates the output is "
         "the odometry/IMU prediction from the newest solved keyframe)"

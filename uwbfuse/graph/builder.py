@@ -18,6 +18,7 @@ iSAM2) and the batch solver (which also keeps every factor: `record=True`).
 from __future__ import annotations
 
 import copy
+import logging
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,9 +40,13 @@ from uwbfuse.graph.uwb import (
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
+log = logging.getLogger(__name__)
+
 ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
 WHEEL_HUBER_K = 1.345  # Huber threshold of the wheel factor (whitened), against slip
 ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
+MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
+REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
 
 
 @dataclass
@@ -172,7 +177,9 @@ class GraphBuilder:
         self.review = True  # delayed re-classification of ranges (online)
         self.z0 = planar_height(anchors, float(start.position[2]))
         self.pim_params = (
-            imu_mod.preintegration_params(config.imu, config.extrinsics) if self.has_imu else None
+            imu_mod.preintegration_params(config.imu, config.extrinsics,
+                                          self.g.imu_noise_inflation)
+            if self.has_imu else None
         )
         # current estimate of the newest keyframe (updated by the smoother)
         self.pose = gtsam.Pose3(gtsam.Rot3(np.asarray(start.R_map_base, dtype=np.float64)),
@@ -188,13 +195,31 @@ class GraphBuilder:
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         self.full_values = gtsam.Values() if record else None
         self.dropped_ranges = 0
+        self.repeated_ranges = 0
+        self._last_range: dict[int, tuple[int, float]] = {}
         self._resid: list[np.ndarray] = []
         self._resp: list[np.ndarray] = []
         self._since_mstep = 0
 
     # ---------------------------------------------------------------- data
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
-        """Queue ranges (stamps ns, anchor index, metres) for the keyframes to come."""
+        """Queue ranges (stamps ns, anchor index, metres) for the keyframes to come.
+
+        A range that repeats its anchor's previous value exactly within REPEAT_WINDOW_NS
+        is a re-published copy (some radios publish each epoch twice) and is dropped, so it
+        is not counted twice.
+        """
+        t_ns, anchor, rng = np.asarray(t_ns), np.asarray(anchor), np.asarray(rng)
+        dup = np.zeros(len(t_ns), dtype=bool)
+        for i, (t, a, r) in enumerate(zip(t_ns.tolist(), anchor.tolist(), rng.tolist(),
+                                          strict=True)):
+            last = self._last_range.get(a)
+            if last is not None and r == last[1] and t - last[0] < REPEAT_WINDOW_NS:
+                dup[i] = True
+            else:
+                self._last_range[a] = (t, r)
+        self.repeated_ranges += int(np.count_nonzero(dup))
+        t_ns, anchor, rng = t_ns[~dup], anchor[~dup], rng[~dup]
         keep = np.asarray(t_ns) >= self.t0
         self.dropped_ranges += int(np.count_nonzero(~keep))
         if np.any(keep):
@@ -304,7 +329,14 @@ class GraphBuilder:
             inc.graph.add(self._planar_prior(0, self.pose))
         if self.has_imu:
             # `still` says the log *started* still; the state may be taken while moving
-            v_s = 0.1 if float(np.linalg.norm(self.vel)) < 0.05 else 0.5
+            speed = float(np.linalg.norm(self.vel))
+            if speed > MAX_START_SPEED:  # implausible for an indoor vehicle or walker
+                log.warning("initial speed %.1f m/s is implausible: starting from rest, "
+                            "velocity sigma 1 m/s", speed)
+                self.vel = np.zeros(3)
+                v_s = 1.0
+            else:
+                v_s = 0.1 if speed < 0.05 else 0.5
             inc.graph.add(gtsam.PriorFactorVector(V(0), self.vel, diagonal([v_s] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
                 B(0), self.bias, diagonal(imu_mod.bias_prior_sigmas(self.cfg.imu))))

@@ -442,6 +442,7 @@ class GraphEstimator:
         out["nlos_mixture"] = {"sigma_los": mix.sigma_los, "mu_nlos": mix.mu_nlos,
                                "sigma_nlos": mix.sigma_nlos, "p_nlos": mix.p_nlos}
         out["dropped_ranges_before_init"] = b.dropped_ranges
+        out["repeated_ranges_dropped"] = b.repeated_ranges
         return out
 
 

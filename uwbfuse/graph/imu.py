@@ -22,16 +22,22 @@ def pose_from_xyzq(xyzq: tuple[float, ...] | np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), np.array([x, y, z]))
 
 
-def preintegration_params(cfg: ImuConfig, ext: Extrinsics) -> gtsam.PreintegrationCombinedParams:
-    """PreintegrationCombinedParams from config (gravity along -z of the map frame)."""
+def preintegration_params(
+    cfg: ImuConfig, ext: Extrinsics, inflation: float = 1.0
+) -> gtsam.PreintegrationCombinedParams:
+    """PreintegrationCombinedParams from config (gravity along -z of the map frame).
+
+    `inflation` multiplies the noise densities and bias random walks (standard deviations).
+    """
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(cfg.gravity)
     i3 = np.eye(3)
-    p.setAccelerometerCovariance(i3 * cfg.accel_noise_density**2)
-    p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2)
+    f2 = inflation**2
+    p.setAccelerometerCovariance(i3 * cfg.accel_noise_density**2 * f2)
+    p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2 * f2)
     # 1e-6 (m/s)^2 s: below ~1e-7 the 0.1 s factors become too ill-conditioned for Cholesky
     p.setIntegrationCovariance(i3 * 1e-6)
-    p.setBiasAccCovariance(i3 * cfg.accel_bias_random_walk**2)
-    p.setBiasOmegaCovariance(i3 * cfg.gyro_bias_random_walk**2)
+    p.setBiasAccCovariance(i3 * cfg.accel_bias_random_walk**2 * f2)
+    p.setBiasOmegaCovariance(i3 * cfg.gyro_bias_random_walk**2 * f2)
     body_p_imu = pose_from_xyzq(ext.imu_in_base)
     if not body_p_imu.equals(gtsam.Pose3(), 1e-12):
         p.setBodyPSensor(body_p_imu)
