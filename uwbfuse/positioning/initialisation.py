@@ -578,16 +578,17 @@ class Initialiser:
         t_first = min(int(c[0][0]) for c in (imu, wheel, rng) if c)
         w_start = motion_start if motion_start is not None else t_first
         max_win = cfg.max_window
-        if not self.has_wheel and motion_start is None:
+        if not self.has_wheel:
+            # Strapdown drifts (bias, tilt): IMU-only tracks use a shorter window.
             max_win = min(max_win, _IMU_WINDOW_S)
         w_start = max(w_start, int(t_ns - max_win * NS_PER_S))
         v0_known = motion_start is not None and w_start == motion_start
         tf, pf, okf = self._fixes(rng, w_start)
         pf, tf = pf[okf], tf[okf]
-        if len(pf) < 6:
+        if len(pf) < 4:
             self.last_reason = "too few UWB fixes in the motion window"
             return None
-        head = np.median(pf[:3, :2], axis=0)
+        head = np.median(pf[: max(1, min(3, len(pf) // 2)), :2], axis=0)
         disp = float(np.percentile(np.linalg.norm(pf[:, :2] - head, axis=1), 90))
         if disp < cfg.min_displacement:
             self.last_reason = f"UWB track moved {disp:.2f} m < min_displacement"
