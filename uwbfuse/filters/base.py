@@ -26,7 +26,13 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import PoseEstimate
-from uwbfuse.filters.models import F64, NS_PER_S, gate_threshold, imu_to_base
+from uwbfuse.filters.models import (
+    F64,
+    NS_PER_S,
+    gate_threshold,
+    imu_to_base,
+    quat_xyzw_from_matrix,
+)
 from uwbfuse.streams import AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -56,6 +62,8 @@ class InitialiserLike(Protocol):
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None: ...
 
     def try_initialise(self, t_ns: int) -> InitialStateLike | None: ...
+
+    def provisional(self, t_ns: int) -> InitialStateLike | None: ...
 
 
 def default_initialiser(
@@ -164,6 +172,7 @@ class StreamingFilter:
         self._wheel_meas: tuple[np.ndarray, ...] | None = None
         self._ranges: tuple[np.ndarray, ...] | None = None
         self.t_cur: int | None = None
+        self._provisional: InitialStateLike | None = None
         self.t_init: int | None = None
         self.used: Counter[int] = Counter()
         self.gated: Counter[int] = Counter()
@@ -212,7 +221,9 @@ class StreamingFilter:
         if self._init_pending:
             state = self.initialiser.try_initialise(int(t_ns))
             if state is None:
+                self._provisional = self.initialiser.provisional(int(t_ns))
                 return
+            self._provisional = None
             self._init_pending = False
             self._absorb_inputs()
             self.t_init = int(state.t_ns)
@@ -247,8 +258,21 @@ class StreamingFilter:
         self._trim_inputs()
 
     def estimate(self) -> PoseEstimate | None:
-        """The causal pose (base in map) at the last step time, or None before the start."""
-        if self._init_pending or self.t_cur is None:
+        """The causal pose (base in map) at the last step time.
+
+        Before the filter has its start state this is the initialiser's provisional pose
+        (UWB fix, levelled attitude, heading if solved so far) so that outputs cover the
+        log from the first motion, or None when there is none yet.
+        """
+        if self._init_pending:
+            p = self._provisional
+            if p is None:
+                return None
+            return PoseEstimate(
+                int(p.t_ns), np.array(p.position, dtype=np.float64),
+                quat_xyzw_from_matrix(np.asarray(p.R_map_base, dtype=np.float64)),
+            )
+        if self.t_cur is None:
             return None
         pos, quat = self._pose()
         return PoseEstimate(self.t_cur, pos, quat)
