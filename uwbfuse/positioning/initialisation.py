@@ -11,9 +11,11 @@ Steps:
    the still period give a static robust multilateration fix. Without a still start,
    roll/pitch come from the mean specific force over the first `level_window` seconds.
 2. Heading: once the UWB track has moved `min_displacement`, a small robust nonlinear
-   least squares (scipy `least_squares`, soft-L1 loss) on the raw ranges of the motion
-   window solves the start pose: unknowns p0 (base origin, map frame), yaw0, and for an
-   IMU-only track also the start velocity and a constant acceleration error. The
+   least squares (`robust_lm`: Levenberg-Marquardt with soft-L1 IRLS weights) on the raw
+   ranges of the motion window solves the start pose: unknowns p0 (base origin, map
+   frame), yaw0, per-anchor range biases, weak height priors, and for an IMU-only track
+   the start velocity (unless it starts at rest) and first-order corrections of the
+   accelerometer bias, gyro bias and (no still start) level tilt. The
    vehicle's relative track comes from dead reckoning (wheels, with the IMU yaw rate when
    there is one; else IMU strapdown with the standstill bias), so the tag is at
    p0 + Rz(yaw0) (d(t) + R'(t) tag_in_base). Eight yaw seeds avoid local minima; the
@@ -23,9 +25,12 @@ Steps:
    (or unknown, yaw_sigma = pi, after `heading_timeout` seconds without motion).
 
 The returned state refers to the latest `t_ns` given (propagated with the dead-reckoned
-track) so a streaming estimator can start from it at once. Frames: map = anchor frame
-(z up); base per REP-103; yaw-zero frame W' = level frame whose yaw is 0 at the start of
-dead reckoning.
+track) so a streaming estimator can start from it at once. `provisional(t_ns)` gives a
+best-effort state (heading possibly unknown, yaw_sigma = pi) for the time before that.
+Reported stds are 2x the least-squares ones (time-correlated range errors).
+
+Frames: map = anchor frame (z up); base per REP-103; yaw-zero frame W' = level frame whose
+yaw is 0 at the start of dead reckoning.
 """
 
 from __future__ import annotations
