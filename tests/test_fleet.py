@@ -182,44 +182,64 @@ def test_batch_on_scheduler_matches_run_and_reports_corrupt_log(
     assert all(h.split(":")[1] != str(os.getpid()) for h in hosts), "ran in the client"
 
 
+@pytest.fixture(scope="module")
+def long_logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path]]:
+    """Three 90 s logs and their `run_log` TUMs for `imu` (~0.4 s a job): long enough
+    that a worker killed after the first result is still busy with another job."""
+    from uwbfuse.pipeline import run_log
+
+    d = tmp_path_factory.mktemp("long")
+    good = [_simulated_log(d / f"long{i}.mcap", seed=10 + i, duration_s=90.0)
+            for i in range(3)]
+    refs = []
+    for lg in good:
+        refs.append(d / f"{lg.stem}.ref.tum")
+        run_log(lg, Method.IMU, Config(), tum_out=refs[-1])
+    return {"good": good, "ref": refs}
+
+
 @needs_dask
 def test_batch_survives_a_worker_killed_mid_batch(
-    logs: dict[str, list[Path]], tmp_path: Path
+    long_logs: dict[str, list[Path]], tmp_path: Path
 ) -> None:
     """Test that killing one of two workers mid-batch still yields every result."""
     copies = []
     for k in range(2):
-        for lg in logs["good"]:
+        for lg in long_logs["good"]:
             dst = tmp_path / "logs" / f"c{k}_{lg.name}"
             dst.parent.mkdir(exist_ok=True)
             shutil.copyfile(lg, dst)
             copies.append(dst)
     procs = DaskProcesses(tmp_path / "dask", n_workers=2)
-    killed: list[int] = []
+    killed: list[float] = []
+    seen: list[tuple[int, float]] = []
 
     def progress(done: int, total: int, note: str) -> None:
-        if done >= 1 and not killed:  # first job back: the other jobs are queued or running
+        seen.append((done, time.monotonic()))
+        if done >= 1 and not killed:  # first job back: the others are queued or running
             procs.kill(procs.workers[0])
-            killed.append(done)
+            killed.append(time.monotonic())
 
     try:
         out = tmp_path / "out"
-        result = batch_run(copies, METHOD, out_dir=out, scheduler=procs.address,
+        result = batch_run(copies, Method.IMU, out_dir=out, scheduler=procs.address,
                            progress=progress)
     finally:
         procs.close()
-    assert killed and killed[0] < len(copies)
+    assert len(killed) == 1 and seen[-1][0] == len(copies)
+    # Five jobs of ~0.4 s were still to come when the worker died: mid-batch indeed.
+    assert seen[-1][1] - killed[0] > 0.3
     assert result.n_ok == len(copies), [r["error"] for r in result.rows]
-    ref = {lg.name: r.read_bytes() for lg, r in zip(logs["good"], logs["ref"], strict=True)}
+    ref = {lg.name: r.read_bytes() for lg, r in zip(*long_logs.values(), strict=True)}
     for cp in copies:
         original = cp.name.split("_", 1)[1]
-        assert (out / f"{cp.stem}.{METHOD.value}.tum").read_bytes() == ref[original]
-        assert (out / f"{cp.stem}.{METHOD.value}.json").exists()
+        assert (out / f"{cp.stem}.imu.tum").read_bytes() == ref[original]
+        assert (out / f"{cp.stem}.imu.json").exists()
 
 
 @needs_dask
 def test_batch_stops_when_no_worker_is_left(
-    logs: dict[str, list[Path]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    long_logs: dict[str, list[Path]], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Test that losing the only worker ends the batch with a FleetError, not a hang,
     keeping the jobs done so far for resume."""
@@ -234,11 +254,11 @@ def test_batch_stops_when_no_worker_is_left(
     out = tmp_path / "out"
     try:
         with pytest.raises(FleetError, match="no Dask workers left"):
-            batch_run(logs["good"], METHOD, out_dir=out, scheduler=procs.address,
+            batch_run(long_logs["good"], Method.IMU, out_dir=out, scheduler=procs.address,
                       progress=progress)
     finally:
         procs.close()
-    assert len(list(out.glob(f"*.{METHOD.value}.json"))) == 1
+    assert len(list(out.glob("*.imu.json"))) == 1
 
 
 @needs_dask
