@@ -17,7 +17,9 @@ runs; the logs must be reachable by the workers under the path given.
 
 Isolation: a job catches everything its log or its method raises and returns a failed row
 with the error text; a job whose worker dies is retried on another worker by Dask (up to
-`distributed.scheduler.allowed-failures` times) and otherwise fails its own row.
+`distributed.scheduler.allowed-failures` times) and otherwise fails its own row. A cluster
+left without any worker for `WORKER_WAIT_S`, or a lost scheduler, ends the batch with a
+`FleetError`; the jobs finished so far are kept, and running again resumes.
 
 The cluster: with no scheduler address, an in-process `LocalCluster` sized to the machine
 (one single-threaded worker process per core); with an address, an existing cluster
