@@ -43,10 +43,11 @@ def factory():
     return simulate_with_truth("factory", 30.0, 0)
 
 
-# measured (seed 0, isam2/batch): all 0.14/0.01, no imu 0.19/0.23, no wheel 0.34/0.20
+# measured (seed 0, isam2/batch): all 0.16/0.04, no imu 0.20/0.28, no wheel 0.30/0.25
+# (30 s with 3 anchors, one in NLOS from the start, and wheel slip: the start dominates)
 @pytest.mark.parametrize(
     ("drop", "tol_isam2", "tol_batch"),
-    [((), 0.21, 0.05), (("imu",), 0.29, 0.34), (("wheel",), 0.5, 0.3)],
+    [((), 0.25, 0.06), (("imu",), 0.30, 0.43), (("wheel",), 0.45, 0.38)],
     ids=["imu+wheel+uwb", "wheel+uwb", "imu+uwb"],
 )
 def test_sensor_combinations(factory, drop, tol_isam2, tol_batch):
@@ -109,20 +110,21 @@ def test_outage_is_bridged():
     t = ev.t_s - log.ground_truth.t_s[0]
     during = (t > 15.0) & (t < 25.0)
     after = t > 32.0
-    assert np.max(ev.ate_2d_errors[during]) < 0.5  # measured 0.27 (odometry drift)
-    assert np.sqrt(np.mean(ev.ate_2d_errors[after] ** 2)) < 0.12  # measured 0.075
+    assert np.max(ev.ate_2d_errors[during]) < 0.45  # measured 0.26 (odometry drift)
+    assert np.sqrt(np.mean(ev.ate_2d_errors[after] ** 2)) < 0.11  # measured 0.072
 
 
 def test_nlos_modelling_beats_huber_alone():
     """Test that NLOS bursts (2/3 of ranges biased +0.3 m) are handled by the NLOS model."""
-    sim = simulate_with_truth("warehouse-nlos", 40.0, 0)
+    sim = simulate_with_truth("warehouse-nlos", 60.0, 0)
     log = sim.log
     with_model = Config()
     huber_only = Config()
     huber_only.graph.nlos = False
     a = _ate(estimate(log, Method.BATCH, with_model).trajectory, log)
     b = _ate(estimate(log, Method.BATCH, huber_only).trajectory, log)
-    assert a < 0.8 * b  # measured 0.083 against 0.140
+    assert a < 0.2  # measured 0.12
+    assert a < 0.5 * b  # measured 0.12 against 0.59
 
 
 def test_range_bias_is_recovered():
@@ -137,7 +139,7 @@ def test_range_bias_is_recovered():
     cfg.graph.range_bias_anchor_sigma = 0.3
     res = estimate(log, Method.BATCH, cfg)
     est = np.array([res.report["anchors"][a]["bias_m"] for a in log.anchors.ids])
-    assert np.max(np.abs(est - sim.anchor_offset)) < 0.03  # measured 0.008
+    assert np.max(np.abs(est - sim.anchor_offset)) < 0.03  # measured 0.005
 
 
 def test_isam2_is_causal():

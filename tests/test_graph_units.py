@@ -1,0 +1,92 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Unit tests of the graph building blocks: wheel track, noise models, NLOS chain, Plaza."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uwbfuse.config import RobustKernel, WheelConfig
+
+gtsam = pytest.importorskip("gtsam")
+
+from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
+from uwbfuse.graph.uwb import NlosModel, hmm_filter, hmm_smooth  # noqa: E402
+from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
+
+NS = 1_000_000_000
+
+
+def test_wheel_track_integrates_a_circle_exactly():
+    """Test that constant (v, omega) samples give the exact arc, between any two times."""
+    v, w = 0.5, 0.25
+    t = np.arange(1, 401) * (NS // 50)  # 8 s at 50 Hz
+    track = WheelTrack()
+    track.add(t[:150], np.full(150, v), np.full(150, w))
+    track.add(t[150:], np.full(250, v), np.full(250, w))
+    ta, tb = int(t[10]), int(t[10]) + 3 * NS + 7_000_000  # tb between samples
+    d = track.between(ta, tb)
+    dt = (tb - ta) / NS
+    r = v / w
+    np.testing.assert_allclose(d, [r * math.sin(w * dt), r * (1 - math.cos(w * dt)), w * dt],
+                               atol=1e-9)
+
+
+def test_wheel_covariance_grows_and_factor_is_native():
+    """Test that the propagated covariance grows with time; the factor is BetweenFactorPose3."""
+    t = np.arange(1, 201) * (NS // 50)
+    track = WheelTrack()
+    track.add(t, np.full(200, 0.5), np.full(200, 0.1))
+    cfg = WheelConfig()
+    c1 = track.covariance(int(t[0]), int(t[0]) + NS, cfg)
+    c2 = track.covariance(int(t[0]), int(t[0]) + 2 * NS, cfg)
+    assert np.all(np.diag(c2) > np.diag(c1))
+    assert np.all(np.linalg.eigvalsh(c1) > 0)
+    f = between_factor(1, 2, track.between(int(t[0]), int(t[0]) + NS), c1, (0.01, 0.01, 0.01))
+    assert isinstance(f, gtsam.BetweenFactorPose3)
+
+
+@pytest.mark.parametrize("kernel", [k for k in RobustKernel if k is not RobustKernel.NONE])
+def test_robust_weight_matches_gtsam(kernel):
+    """Test that the vectorised kernel weights equal GTSAM's m-estimator weights."""
+    est = robust_estimator(kernel, 1.345)
+    e = np.array([0.1, 0.9, 1.5, 3.0, 8.0])
+    ours = robust_weight(kernel, 1.345, e)
+    theirs = np.array([est.weight(float(x)) for x in e])
+    np.testing.assert_allclose(ours, theirs, rtol=1e-9, atol=1e-12)
+
+
+def test_nlos_chain_detects_a_persistent_positive_bias():
+    """Test that ranges reading 0.3 m long for a while are classified NLOS, others LOS."""
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    rng = np.random.default_rng(0)
+    r = rng.normal(0.0, 0.05, 200)
+    r[60:120] += 0.3
+    ll_l, ll_n = m.log_likelihoods(r, r - 0.3, 0.03**2)
+    g_f, _, _ = hmm_filter(ll_l, ll_n, m.p_switch, m.p_nlos, m.p_nlos)
+    g_s = hmm_smooth(ll_l, ll_n, m.p_switch, m.p_nlos)
+    truth = np.zeros(200, bool)
+    truth[60:120] = True
+    assert np.mean((g_s > 0.5) == truth) > 0.97
+    assert np.mean((g_f > 0.5) == truth) > 0.9
+    assert np.mean((g_s > 0.5) == truth) >= np.mean((g_f > 0.5) == truth)
+
+
+def test_plaza_converter_reads_the_gtsam_data():
+    """Test that a Plaza .mat file becomes a SensorLog with wheels, ranges, anchors, GT."""
+    from uwbfuse.errors import LogReadError
+    from uwbfuse.graph.plaza import plaza_log, plaza_path
+
+    try:
+        path = plaza_path("Plaza2")
+    except LogReadError as exc:
+        pytest.skip(str(exc))
+    log = plaza_log(path)
+    assert len(log.anchors) == 4
+    assert len(log.ranges) > 1500 and len(log.wheel) > 4000
+    assert np.all(np.diff(log.ranges.t_ns) >= 0)
+    assert not log.ground_truth.has_orientation
+    speed = np.abs(log.wheel.v)  # a golf cart: a few m/s
+    assert 0.5 < np.median(speed) < 10.0
