@@ -89,6 +89,20 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_calibrate_nlos(args: argparse.Namespace) -> int:
+    from uwbfuse.positioning.nlos_model import calibrate_nlos_file
+
+    text = calibrate_nlos_file(args.log, config_path=args.config, gt_path=args.gt)
+    if args.output:
+        from uwbfuse.compare import write_text_atomic
+
+        write_text_atomic(Path(args.output), text)
+        print(f"wrote {args.output}")
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
 def _cmd_dump_config(args: argparse.Namespace) -> int:
     from uwbfuse.config import dump_config
 
@@ -225,6 +239,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
     b.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     b.set_defaults(func=_cmd_batch)
+
+    n = sub.add_parser(
+        "calibrate-nlos",
+        help="fit the LOS/NLOS range-error model (Qiu 2022 eq. 8-9) for the wls method",
+    )
+    n.add_argument("log", metavar="LOG", help="calibration log with ground truth")
+    n.add_argument("--config", metavar="FILE")
+    n.add_argument("--gt", metavar="GT.tum", help="ground truth, if not in the log")
+    n.add_argument("-o", "--output", metavar="OUT.toml", help="default: stdout")
+    n.set_defaults(func=_cmd_calibrate_nlos)
 
     d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
     d.set_defaults(func=_cmd_dump_config)

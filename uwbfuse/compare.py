@@ -105,7 +105,8 @@ def parse_methods(methods: str | list[str]) -> list[Method]:
     return out
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write `text` to `path` whole or not at all (temporary file + rename)."""
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -186,7 +187,7 @@ def compare_log(
         ("table.md", f"# {log_path}\n\n" + result.markdown()),
         ("config.toml", dump_config(config)),
     ):
-        _atomic_write_text(out / name, text)
+        write_text_atomic(out / name, text)
         result.files.append(out / name)
 
     from uwbfuse.plots import plot_comparison

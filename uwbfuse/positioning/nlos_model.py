@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -277,3 +278,27 @@ def calibrate_nlos(
             g = default.los_std
             per[aid] = _fit_histogram(e, bins, default, (0.5 * g, 2.0 * g))
     return NlosModel(default, per, samples)
+
+
+def calibrate_nlos_file(
+    log_path: str | Path, *, config_path: str | Path | None = None,
+    gt_path: str | Path | None = None,
+) -> str:
+    """`uwbfuse calibrate-nlos`: fit the model on a log and return it as a `[wls]` TOML
+    snippet to paste into the config. Ground truth from the log or from a TUM file."""
+    from uwbfuse.config import _toml_value, load_config
+    from uwbfuse.io.reader import read_log
+    from uwbfuse.io.tum import read_tum
+
+    config = load_config(config_path)
+    log = read_log(log_path, config)
+    if gt_path is not None:
+        log.ground_truth = read_tum(gt_path)
+    model = calibrate_nlos(log, config)
+    values = model.to_toml()
+    per_anchor = values.pop("anchor_nlos")
+    lines = [f"# NLOS range-error model fitted on {log_path} (metres)", "[wls]"]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
+    lines += ["", "[wls.anchor_nlos]  # id = [los_std, nlos_mean, nlos_std, nlos_prior]"]
+    lines += [f'"{k}" = {_toml_value(v)}' for k, v in per_anchor.items()]
+    return "\n".join(lines) + "\n"
