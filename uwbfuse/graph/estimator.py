@@ -35,11 +35,12 @@ from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate
 from uwbfuse.graph import offline
-from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
+from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch, planar_height
 from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
+from uwbfuse.graph.start import solve_start
 from uwbfuse.graph.uwb import posterior
 from uwbfuse.graph.wheel import WheelTrack
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -49,6 +50,8 @@ log = logging.getLogger(__name__)
 BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
 REVIEW_DELAY_S = 1.0  # age (s) at which a range's LOS/NLOS responsibility is revisited
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
+FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
+FALLBACK_RETRY_S = 1.0  # s of data between two fallback attempts
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -93,6 +96,8 @@ class GraphEstimator:
         self._reviews: deque[ReviewBatch] = deque()
         self._review_inc: Increment | None = None
         self._n_reviewed = 0
+        self._fallback_t: int | None = None
+        self._fallback_used = False
         self._batch_wall = 0.0
 
     # ------------------------------------------------------------------ input
@@ -123,6 +128,8 @@ class GraphEstimator:
         if self.builder is None:
             state = self.init.try_initialise(int(t_ns))
             if state is None:
+                state = self._fallback_start(int(t_ns))
+            if state is None:
                 return
             self._start(state)
         self._steps.append(int(t_ns))
@@ -132,6 +139,32 @@ class GraphEstimator:
             self._pending.append(b.next())
             if len(self._pending) >= self._chunk:
                 self._flush()
+
+    def _fallback_start(self, t_ns: int) -> Any:
+        """Wheeled logs without an IMU whose ranges give no fixes: solve the start here.
+
+        Tried every FALLBACK_RETRY_S of data once the initialiser has had
+        FALLBACK_AFTER_S seconds of ranges without answering (see `graph.start`).
+        """
+        if "imu" in self.streams or "wheel" not in self.streams or not self._pre_ranges:
+            return None
+        t_first = int(self._pre_ranges[0][0][0])
+        if t_ns - t_first < FALLBACK_AFTER_S * NS_PER_S:
+            return None
+        if self._fallback_t is not None and t_ns - self._fallback_t < FALLBACK_RETRY_S * NS_PER_S:
+            return None
+        self._fallback_t = t_ns
+        t = np.concatenate([r[0] for r in self._pre_ranges])
+        a = np.concatenate([r[1] for r in self._pre_ranges])
+        z = np.concatenate([r[2] for r in self._pre_ranges])
+        z_floor = planar_height(self.anchors, 0.0)
+        state = solve_start(self.wheel, self.anchors, t, a, z,
+                            np.asarray(self.cfg.extrinsics.tag_in_base, float), z_floor, t_ns)
+        if state is not None:
+            log.info("initialiser gave no start: fallback start from wheel track and raw "
+                     "ranges at t=%.3f s", t_ns * 1e-9)
+            self._fallback_used = True
+        return state
 
     def _start(self, state: Any) -> None:
         self.builder = GraphBuilder(
@@ -404,6 +437,7 @@ class GraphEstimator:
             return out
         out["initialised"] = True
         out["init_t_ns"] = self._init_t
+        out["fallback_start"] = self._fallback_used
         out["keyframes"] = b.k + 1
         lat = np.asarray(self._update_latency)
         if len(lat):

@@ -1,0 +1,125 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Fallback start for wheeled logs with sparse, round-robin ranges.
+
+The positioning `Initialiser` builds its heading solve on per-epoch multilateration fixes;
+when a radio ranges to one anchor at a time at a few Hz (the Labyrinth and Plaza logs),
+there are no fixes and it never answers. Then this module solves the start directly from
+the raw ranges: the wheel dead-reckoning track d(t) (base frame at its first sample) is
+placed in the map by an unknown planar pose (x0, y0, yaw0), a common range offset c and a
+common range scale error k (|k| <= 15 %), and robust least squares (scipy, soft-L1) fits
+(1 + k) |p0 + R(yaw0) d(t) + R(t) tag - anchor| + c to every range so far, from several yaw
+seeds. The answer is accepted once the vehicle has
+travelled `MIN_TRAVEL_M`, the best solution's residuals are consistent and no other local
+minimum comes close. Sensors only: no ground truth, no given pose.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from uwbfuse.graph.wheel import WheelTrack, se2_compose
+from uwbfuse.streams import AnchorMap
+
+MIN_TRAVEL_M = 2.0  # path length before a heading is attempted, m
+MIN_RANGES = 30
+N_SEEDS = 8
+MAX_RMS_M = 0.5  # robust residual scale of an accepted solution, m
+MAX_RMS_REL = 0.03  # ... or this fraction of the median range on large sites
+MIN_COST_RATIO = 2.0  # second-best minimum must be this much worse
+
+
+@dataclass(frozen=True)
+class FallbackState:
+    """Start state in the same form as positioning's InitialState (planar vehicle)."""
+
+    t_ns: int
+    position: np.ndarray
+    R_map_base: np.ndarray
+    velocity: np.ndarray
+    gyro_bias: np.ndarray
+    accel_bias: np.ndarray
+    position_sigma: float
+    yaw_sigma: float
+    still: bool
+
+
+def _rot_z(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def solve_start(
+    track: WheelTrack,
+    anchors: AnchorMap,
+    t_r: np.ndarray,
+    a_r: np.ndarray,
+    z_r: np.ndarray,
+    tag: np.ndarray,
+    base_z: float,
+    t_now: int,
+) -> FallbackState | None:
+    """The base pose at t_now from the wheel track and the raw ranges, or None."""
+    if len(track) < 2 or len(t_r) < MIN_RANGES:
+        return None
+    sel = (t_r >= track.t[0]) & (t_r <= t_now)
+    t_r, a_r, z_r = t_r[sel], a_r[sel], z_r[sel]
+    if len(t_r) < MIN_RANGES or len(np.unique(a_r)) < 3:
+        return None
+    v_abs = np.abs(track.v[track.t <= t_now])
+    travel = float(np.sum(v_abs[1:] * np.diff(track.t[track.t <= t_now]) / 1e9))
+    if travel < MIN_TRAVEL_M:
+        return None
+    d = track.at(t_r)  # (n,3) x, y, theta in the track frame
+    c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
+    tag_xy = np.column_stack([d[:, 0] + c * tag[0] - s * tag[1], d[:, 1] + s * tag[0] + c * tag[1]])
+    anc = anchors.positions[a_r]
+    dz = base_z + tag[2] - anc[:, 2]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        x0, y0, yaw, off, scale = p
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        px = x0 + cy * tag_xy[:, 0] - sy * tag_xy[:, 1]
+        py = y0 + sy * tag_xy[:, 0] + cy * tag_xy[:, 1]
+        rng = np.sqrt((px - anc[:, 0]) ** 2 + (py - anc[:, 1]) ** 2 + dz**2)
+        return (1.0 + scale) * rng + off - z_r
+
+    centre = anchors.positions[:, :2].mean(axis=0)
+    sols = []
+    for k in range(N_SEEDS):
+        yaw0 = 2.0 * math.pi * k / N_SEEDS
+        # seed the position so that the track's middle sits at the anchors' centre
+        mid = tag_xy[len(tag_xy) // 2]
+        p0 = centre - _rot_z(yaw0)[:2, :2] @ mid
+        r = least_squares(resid, [p0[0], p0[1], yaw0, 0.0, 0.0], loss="soft_l1", f_scale=0.2,
+                          max_nfev=300, bounds=([-np.inf] * 3 + [-1.0, -0.15],
+                                                [np.inf] * 3 + [1.0, 0.15]))
+        sols.append((float(r.cost), r.x))
+    sols.sort(key=lambda c_x: c_x[0])
+    best_cost, best = sols[0]
+    yaw_b = best[2]
+    other = [c for c, x in sols[1:] if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > 0.2]
+    rms = math.sqrt(2.0 * best_cost / len(z_r))
+    max_rms = max(MAX_RMS_M, MAX_RMS_REL * float(np.median(z_r)))
+    if rms > max_rms or (other and other[0] < MIN_COST_RATIO * best_cost):
+        return None
+    pose_now = se2_compose(np.array([best[0], best[1], best[2]]), track.at(t_now))
+    r_now = _rot_z(float(pose_now[2]))
+    if len(track.t) and track.t[-1] <= t_now:
+        v_now = float(track.v[-1])
+    else:
+        v_now = float(track.v[min(np.searchsorted(track.t, t_now), len(track) - 1)])
+    return FallbackState(
+        t_ns=int(t_now),
+        position=np.array([pose_now[0], pose_now[1], base_z]),
+        R_map_base=r_now,
+        velocity=r_now @ np.array([v_now, 0.0, 0.0]),
+        gyro_bias=np.zeros(3),
+        accel_bias=np.zeros(3),
+        position_sigma=max(rms, 0.1),
+        yaw_sigma=0.1,
+        still=False,
+    )
