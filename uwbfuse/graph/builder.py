@@ -46,6 +46,8 @@ ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
 WHEEL_HUBER_K = 1.345  # Huber threshold of the wheel factor (whitened), against slip
 ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
 MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
+SCALE_BLOCK = 20  # ranges of an anchor per online scale update
+MAX_SCALE = 0.2  # bound on a range scale error
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
 
 
@@ -194,6 +196,11 @@ class GraphBuilder:
         self.records = RangeRecords()
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         self.full_values = gtsam.Values() if record else None
+        self.with_scale = self.g.estimate_range_scale
+        self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
+        self._sc_num = np.zeros(m)
+        self._sc_den = np.zeros(m)
+        self._sc_n = np.zeros(m)
         self.dropped_ranges = 0
         self.repeated_ranges = 0
         self._last_range: dict[int, tuple[int, float]] = {}
@@ -433,9 +440,10 @@ class GraphBuilder:
     def _add_ranges(
         self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
     ) -> None:
-        t, a, z = self._take_ranges(t_b)
+        t, a, z_raw = self._take_ranges(t_b)
         if len(t) == 0:
             return
+        z = z_raw / (1.0 + self.scale[a]) if self.with_scale else z_raw
         tag_kf = self.tag_in_keyframe(t_a, t, pose_a, vel_a)
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
@@ -462,13 +470,15 @@ class GraphBuilder:
         sig_l = mix.sigma_los if self.nlos else self.cfg.uwb.sigma
         uwb = self.cfg.uwb
         w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
+        if self.with_scale:
+            self._update_scale(a, r_los, pred, (1.0 - g) * w)
         rec = self.records
         if self.nlos and self.review:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
                                             len(rec.k)), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
-        rec.z.append(z)
+        rec.z.append(z_raw)
         rec.t_ns.append(t)
         rec.tag_in_kf.append(tag_kf)
         rec.g_online.append(g)
@@ -495,6 +505,23 @@ class GraphBuilder:
             out.append(inc.graph.size())
             inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / np.sqrt(g), t_tag, uwb, key))
         return out
+
+    def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:
+        """Running per-anchor scale fit from LOS-weighted residuals (prior: range_scale_sigma).
+
+        Every SCALE_BLOCK ranges of an anchor, k <- (1 + k)(1 + delta) - 1 with
+        delta = sum(w r h) / (sum(w h^2) + sigma_los^2 / sigma_k^2): one Gauss-Newton step
+        of z / (1 + k) = d + b on the ranges since the last step.
+        """
+        np.add.at(self._sc_num, a, w * r * h)
+        np.add.at(self._sc_den, a, w * h * h)
+        np.add.at(self._sc_n, a, 1.0)
+        lam = (self.mixture.sigma_los / self.g.range_scale_sigma) ** 2
+        for anc in np.flatnonzero(self._sc_n >= SCALE_BLOCK):
+            delta = self._sc_num[anc] / (self._sc_den[anc] + lam)
+            k = (1.0 + self.scale[anc]) * (1.0 + delta) - 1.0
+            self.scale[anc] = float(np.clip(k, -MAX_SCALE, MAX_SCALE))
+            self._sc_num[anc] = self._sc_den[anc] = self._sc_n[anc] = 0.0
 
     def _predict_nlos_state(self, a: np.ndarray, seg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean (m) and variance (m^2) of E(a, s) for each range, from the newest estimates."""

@@ -395,7 +395,7 @@ class GraphEstimator:
             initial.insert(C, float(np.mean(b.range_bias)))
         rec = b.records.arrays()
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
-                                    self.anchors.positions, n, b.mixture, b.t0)
+                                    self.anchors.positions, n, b.mixture, b.t0, b.scale)
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""
@@ -459,10 +459,12 @@ class GraphEstimator:
             out["batch"] = {"em_rounds": self._batch.rounds,
                             "lm_iterations": self._batch.lm_iterations,
                             "wall_s": self._batch_wall}
+            scale = self._batch.scale
         else:
             g, w = rec["g_online"], rec["w_online"]
             mix = b.mixture
             bias = b.range_bias
+            scale = b.scale
         anchors: dict[str, Any] = {}
         for a, aid in enumerate(self.anchors.ids):
             sel = rec["anchor"] == a
@@ -471,6 +473,7 @@ class GraphEstimator:
                 "nlos": int(np.count_nonzero(g[sel] > 0.5)),
                 "downweighted": int(np.count_nonzero(w[sel] < 0.999)),
                 "bias_m": float(bias[a]) if b.with_bias else None,
+                "scale": float(scale[a]) if b.with_scale else None,
             }
         out["anchors"] = anchors
         out["nlos_mixture"] = {"sigma_los": mix.sigma_los, "mu_nlos": mix.mu_nlos,

@@ -45,6 +45,7 @@ class BatchResult:
     mixture: NlosModel
     rounds: int
     lm_iterations: int
+    scale: np.ndarray
 
 
 def keyframe_arrays(values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
@@ -98,10 +99,16 @@ def solve(
     n_kf: int,
     model: NlosModel,
     t0_ns: int,
+    scale0: np.ndarray | None = None,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring)."""
     g_cfg = cfg.graph
     uwb = cfg.uwb
+    with_scale = g_cfg.estimate_range_scale
+    scale = np.zeros(len(anchors)) if scale0 is None or not with_scale else scale0.copy()
+    z_raw = rec["z"]
+    rec = dict(rec)
+    rec["z"] = z_raw / (1.0 + scale[rec["anchor"]])
     with_bias = g_cfg.estimate_range_bias
     prior = NlosModel.from_config(uwb, g_cfg)
     mix = copy.copy(model)
@@ -206,11 +213,32 @@ def solve(
         done = it + 1
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
+        if with_scale:
+            refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma)
+            rec["z"] = z_raw / (1.0 + scale[a_r])
+            r_los = rec["z"] - h - bias_values(values)[a_r]
         if states is not None:
             states.values = np.array([values.atDouble(k) for k in states.keys])
+    for _ in range(2 if with_scale else 0):  # scale and geometry settle together
+        values = lm_round(values, g, freeze)
+        h = predicted_ranges(values, rec, anchors, n_kf)
+        r_los = rec["z"] - h - bias_values(values)[a_r]
+        refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma)
+        rec["z"] = z_raw / (1.0 + scale[a_r])
     if freeze:
         values = lm_round(values, g, False)
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
-    return BatchResult(values, g, w, r_los, mix, done, total_it)
+    return BatchResult(values, g, w, r_los, mix, done, total_it, scale)
+
+
+def refit_scale(
+    scale: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray, a: np.ndarray,
+    sigma_los: float, sigma_k: float,
+) -> None:
+    """One Gauss-Newton step per anchor of z / (1 + k) = d + b (in place, prior sigma_k)."""
+    lam = (sigma_los / sigma_k) ** 2
+    num = np.bincount(a, weights=w * r * h, minlength=len(scale))
+    den = np.bincount(a, weights=w * h * h, minlength=len(scale))
+    scale[:] = np.clip((1.0 + scale) * (1.0 + num / (den + lam)) - 1.0, -0.2, 0.2)
