@@ -207,8 +207,13 @@ def _fit_histogram(
 
     s_l = float(np.clip(np.std(e[np.abs(e) < 3 * los_guess.los_std + 0.05]), *los_bounds))
     best = None
-    for mu_n0 in (los_guess.nlos_mean, 3 * los_guess.nlos_mean, 0.5):
-        theta0 = np.array([0.8, 0.0, math.log(s_l), 0.2, mu_n0, math.log(los_guess.nlos_std)])
+    # Multi-start over the NLOS mean and the LOS/NLOS split: with mostly-NLOS logs a
+    # start at 80 % LOS lets the LOS curve widen over the NLOS mode (a local minimum).
+    starts = [(mu, w) for mu in (los_guess.nlos_mean, 3 * los_guess.nlos_mean, 0.5)
+              for w in (0.2, 0.5, 0.8)]
+    for mu_n0, w_n0 in starts:
+        theta0 = np.array([1.0 - w_n0, 0.0, math.log(s_l), w_n0, mu_n0,
+                           math.log(los_guess.nlos_std)])
         bounds = [(0.0, 1.5), (-0.1, 0.1), (math.log(los_bounds[0]), math.log(los_bounds[1])),
                   (0.0, 1.5), (0.0, 3.0), (math.log(0.01), math.log(2.0))]
         r = minimize(cost, theta0, method="L-BFGS-B", bounds=bounds)
