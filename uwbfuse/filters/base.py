@@ -110,8 +110,8 @@ class StreamingFilter:
     #: RECENT, the state is probably off (wheel slip, a bad start) rather than the ranges
     #: wrong, and the position/heading covariance is inflated (`_inflate`). Only with gating
     #: on (`[ekf] gating = false` asks for the plain filter).
-    RECENT = 12
-    GATED_MAX = 6
+    RECENT = 24
+    GATED_MAX = 12
     NIS_FACTOR = 3.0
     #: Variances added by `_inflate`: horizontal position m^2, yaw rad^2, velocity (m/s)^2
     #: (0.2 m, 0.1 rad, 0.2 m/s; larger steps let NLOS-biased ranges drag the estimate).
@@ -122,7 +122,7 @@ class StreamingFilter:
     INFLATE_YAW = 0.01
     INFLATE_VEL = 0.04
     STREAK_NS = 2_000_000_000
-    MAX_STREAK = 5
+    MAX_STREAK = 2
 
     def __init__(
         self,
