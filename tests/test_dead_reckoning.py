@@ -221,3 +221,19 @@ def test_jackal_end_to_end(method: str, tmp_path: Path) -> None:
         assert yaw_change == pytest.approx(273.6, abs=3.0)
         np.testing.assert_allclose(traj.position[:, 2], 0.0, atol=0.05)  # planar (wheels)
         assert np.isfinite(traj.position).all()
+
+
+def test_odom_with_anchors_starts_at_the_initialiser_pose() -> None:
+    """test that with anchors odom starts where the UWB fix and first motion put it"""
+    from uwbfuse.eval.evaluate import evaluate
+    from uwbfuse.sim.simulator import simulate
+
+    log = simulate("room", duration_s=40.0, seed=2)
+    res = estimate(log, Method.ODOM, Config())
+    assert res.report["start"].startswith("initialiser")
+    first = res.trajectory
+    m = evaluate(first, log.ground_truth, max_dt=0.01)
+    # The first 5 s after the fix: the start pose error dominates (LOS room, 0.1 m/s).
+    early = m.t_s < m.t_s[0] + 5.0
+    assert float(np.max(m.ate_2d_errors[early])) < 0.15
+    assert m.yaw is not None and float(np.max(np.abs(m.yaw_errors[early]))) < np.radians(6)

@@ -1,9 +1,12 @@
 # SPDX-License-Identifier: BSD-3-Clause
 """Dead reckoning from the wheels alone (`odom`) or the IMU alone (`imu`).
 
-Both start with the base frame at the map origin, heading zero, whether or not the config
-or the log has anchors: dead reckoning never sees a range, so it cannot know where the map
-is; score it with `uwbfuse eval --align se2` (or se3) when the frames differ.
+Without an anchor map (or without ranges) both start with the base frame at the map
+origin, heading zero, as the contract says; score them with `uwbfuse eval --align se2` (or
+se3). With anchors and ranges, the shared `Initialiser` fixes the start pose from the
+sensors (position by multilateration, heading from the first motion) and the dead-reckoned
+track is anchored there once (`AnchoredDeadReckoning`); after that no range is used, so
+the error growth is that of the wheels or the IMU alone, as in the papers' IMU-only curves.
 
 odom: planar unicycle. Wheel sample k is the mean (v, omega) over (t_{k-1}, t_k], so the
   first sample only fixes the start time. Each interval is integrated as a constant-twist
@@ -438,14 +441,91 @@ class ImuDeadReckoning(_Base):
         }
 
 
+def _matrix(position: F64, quat_xyzw: F64) -> F64:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
+    T[:3, 3] = position
+    return T
+
+
+class AnchoredDeadReckoning:
+    """Dead reckoning started at the pose the `Initialiser` finds from the sensors.
+
+    Until the initialiser succeeds the output is None; at that epoch t_i the map pose is
+    T_map_base(t) = T_init * inv(T_dr(t_i)) * T_dr(t): the dead-reckoned motion since t_i
+    applied to the initial pose. Ranges reach only the initialiser.
+    """
+
+    def __init__(self, inner: OdomDeadReckoning | ImuDeadReckoning, initialiser: Any) -> None:
+        self.inner = inner
+        self.initialiser = initialiser
+        self._offset: F64 | None = None  # T_init * inv(T_dr(t_i))
+        self._init_t_ns: int | None = None
+
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self.inner.add_imu(t_ns, gyro, accel)
+        if self._offset is None:
+            self.initialiser.add_imu(t_ns, gyro, accel)
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        self.inner.add_wheel(t_ns, v, omega)
+        if self._offset is None:
+            self.initialiser.add_wheel(t_ns, v, omega)
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        if self._offset is None:
+            self.initialiser.add_ranges(t_ns, anchor, rng)
+
+    def step(self, t_ns: int) -> None:
+        self.inner.step(t_ns)
+        if self._offset is not None:
+            return
+        state = self.initialiser.try_initialise(t_ns)
+        dr = self.inner.estimate()
+        if state is None or dr is None:
+            return
+        T_init = np.eye(4)
+        T_init[:3, :3] = state.R_map_base
+        T_init[:3, 3] = state.position
+        self._offset = T_init @ np.linalg.inv(_matrix(dr.position, dr.quat_xyzw))
+        self._init_t_ns = t_ns
+        self.initialiser = None  # its buffers are no longer needed
+
+    def estimate(self) -> PoseEstimate | None:
+        dr = self.inner.estimate()
+        if self._offset is None or dr is None:
+            return None
+        T = self._offset @ _matrix(dr.position, dr.quat_xyzw)
+        return PoseEstimate(dr.t_ns, T[:3, 3].copy(), Rotation.from_matrix(T[:3, :3]).as_quat())
+
+    def finish(self) -> PoseStream | None:
+        return None
+
+    def report(self) -> dict[str, Any]:
+        out = {"start": "initialiser (UWB fix + heading from first motion)",
+               "init_t_ns": self._init_t_ns}
+        out.update(self.inner.report())
+        return out
+
+
 def make(
     method: Method, config: Config, anchors: AnchorMap | None, streams: frozenset[str]
 ) -> Estimator:
-    """Dead-reckoning estimator for Method.ODOM or Method.IMU (anchors are not used)."""
+    """Dead-reckoning estimator for Method.ODOM or Method.IMU.
+
+    With anchors and ranges the start pose comes from the `Initialiser`; otherwise the
+    map origin with heading zero.
+    """
     if method is Method.ODOM:
-        return OdomDeadReckoning()
-    if method is Method.IMU:
+        inner: OdomDeadReckoning | ImuDeadReckoning = OdomDeadReckoning()
+    elif method is Method.IMU:
         planar_cfg = config.graph.planar
         planar = planar_cfg == "on" or (planar_cfg == "auto" and "wheel" in streams)
-        return ImuDeadReckoning(config, planar)
-    raise EstimatorError(f"dead reckoning has no method {method.value!r}")
+        inner = ImuDeadReckoning(config, planar)
+    else:
+        raise EstimatorError(f"dead reckoning has no method {method.value!r}")
+    if anchors is None or len(anchors) == 0 or "uwb" not in streams:
+        return inner
+    from uwbfuse.positioning.initialisation import Initialiser
+
+    return AnchoredDeadReckoning(inner, Initialiser(config, anchors, streams))
