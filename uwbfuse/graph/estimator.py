@@ -42,7 +42,7 @@ from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.start import solve_start
 from uwbfuse.graph.uwb import posterior
-from uwbfuse.graph.wheel import WheelTrack
+from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,8 @@ class GraphEstimator:
         self._chunk = BATCH_CHUNK if method is Method.BATCH else config.graph.update_every
         self._pending: list[Increment] = []
         self._last_t: int | None = None
-        self._steps: list[int] = []
+        self._steps: list[int] = []  # step epochs from the start on
+        self._all_steps: list[int] = []  # every step epoch (offline back-fill)
         # per keyframe: smoothed (as it left the window) pose/velocity/bias
         self._kf_pose: dict[int, gtsam.Pose3] = {}
         self._kf_vel: dict[int, np.ndarray] = {}
@@ -125,6 +126,7 @@ class GraphEstimator:
     def step(self, t_ns: int) -> None:
         """Process all data with stamps <= t_ns (see the module docstring)."""
         self._last_t = int(t_ns)
+        self._all_steps.append(int(t_ns))
         if self.builder is None:
             state = self.init.try_initialise(int(t_ns))
             if state is None:
@@ -425,7 +427,34 @@ class GraphEstimator:
                 pp = b.predict(int(t[i]))
                 p[i] = pp.translation()
                 q[i] = _quat_xyzw(pp)
-        return PoseStream(t, p, q, True)
+        return self._backfill(PoseStream(t, p, q, True), poses[0])
+
+    def _backfill(self, traj: PoseStream, first: gtsam.Pose3) -> PoseStream:
+        """Offline outputs only: poses before the start from the wheel track, backwards.
+
+        The start needs some motion, but the output should cover the log from the first
+        motion; with wheels the relative track before the start is known, so the first
+        keyframe's smoothed pose carries it back. (IMU-only logs keep their start.)
+        """
+        b = self.builder
+        assert b is not None
+        if not b.has_wheel or len(self.wheel) == 0 or self._init_t is None:
+            return traj
+        t_pre = np.array([s for s in self._all_steps
+                          if int(self.wheel.t[0]) <= s < self._init_t], dtype=np.int64)
+        if len(t_pre) == 0:
+            return traj
+        p0 = self.wheel.at(np.int64(self._init_t))
+        rel = se2_between(p0[None, :], self.wheel.at(t_pre))
+        pos = np.empty((len(t_pre), 3))
+        quat = np.empty((len(t_pre), 4))
+        for i, r in enumerate(rel):
+            pose = first.compose(se2_to_pose3(r))
+            pos[i] = pose.translation()
+            quat[i] = _quat_xyzw(pose)
+        return PoseStream(np.concatenate([t_pre, traj.t_ns]),
+                          np.concatenate([pos, traj.position]),
+                          np.concatenate([quat, traj.quat_xyzw]), True)
 
     # ------------------------------------------------------------------ report
     def report(self) -> dict[str, Any]:
