@@ -2,19 +2,27 @@
 """The streaming graph estimator behind `isam2`, `isam2-smoothed` and `batch`.
 
 Data arrive in time-sorted batches (`add_imu`, `add_wheel`, `add_ranges`). Until the
-sensors determine a start (`positioning.initialisation.Initialiser`), `estimate()` is None.
-From then on each `step(t)` builds every keyframe with time <= t (`GraphBuilder`) and feeds
-it to a fixed-lag iSAM2 (`OnlineSmoother`); `estimate()` is the newest keyframe composed
-with the odometry/IMU motion up to t: causal.
+sensors determine a start (`positioning.initialisation.Initialiser`; for wheeled logs whose
+sparse round-robin ranges give it no fixes, the graph's own `start.solve_start` after a few
+seconds), `estimate()` is None. From then on each `step(t)` builds every keyframe with time
+<= t (`GraphBuilder`) and feeds them to a fixed-lag iSAM2 (`OnlineSmoother`) every
+`graph.update_every` keyframes; `estimate()` is the newest keyframe (solved or predicted
+from the last solved one by wheels/IMU) composed with the motion up to t: causal.
+A second after insertion each range's LOS/NLOS responsibility is recomputed against the
+smoothed keyframe; ranges that changed class get their factors replaced (iSAM2 factor
+removal), a fixed-lag EM step.
 
 `finish()`:
 - isam2: None (the causal estimates are the output).
 - isam2-smoothed: every keyframe's estimate as it stood when it left the fixed-lag window
   (the final iSAM2 estimate of that keyframe; keyframes still in the window at the end
   take the final window estimate), interpolated to the step epochs.
-- batch: the whole log as one graph (every factor recorded while streaming), solved by
-  Levenberg-Marquardt with NLOS EM from the isam2-smoothed keyframe estimates. The online
-  pass of `batch` updates iSAM2 once per `BATCH_CHUNK` keyframes (it only seeds LM).
+- batch: the whole log as one graph (every non-range factor recorded while streaming,
+  range factors rebuilt per EM round), solved by Levenberg-Marquardt with NLOS EM from the
+  isam2-smoothed keyframe estimates (`offline.solve`). The online pass of `batch` updates
+  iSAM2 once per `BATCH_CHUNK` keyframes (it only seeds LM).
+Both offline outputs are carried back from the start to the first wheel sample by the
+wheel track, so they cover the log from the first motion.
 
 A GTSAM failure in an update (indeterminant system after an outage, say) re-anchors: a
 fresh smoother starts from the newest keyframe's prediction with loose priors, a warning
