@@ -11,7 +11,8 @@ cluster of W single-threaded worker processes (or on `--scheduler`). Reported pe
 wall time, cluster start-up, speed-up over the plain runs and parallel efficiency; the
 per-job overhead of the cluster in wall time, (W x batch wall - plain wall) / jobs, and in
 CPU time, (batch CPU - plain CPU) / jobs, where batch CPU counts this process and its
-worker processes (scheduler, nannies, workers, start-up, transfer, writing results). CPU
+worker processes (scheduler, nannies, workers, start-up, transfer, writing results), and
+`task_cpu_s` is the CPU time of the jobs themselves (their thread, in the workers). CPU
 time stays meaningful on a busy machine, where wall times do not; `load1` is the load
 average after each row. Every batch trajectory is checked byte for byte against the
 plain run's.
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         "run": "plain run_log, sequential", "workers": 1, "wall_s": plain_s,
         "startup_s": 0.0, "speedup": 1.0, "efficiency_pct": 100.0,
         "wall_overhead_per_job_s": 0.0, "cpu_s": plain_cpu, "cpu_overhead_per_job_s": 0.0,
+        "task_cpu_s": plain_cpu,
         "x_realtime": log_s / plain_s, "load1": os.getloadavg()[0],
     }]
     print(f"plain: {plain_s:.1f} s", file=sys.stderr)
@@ -136,13 +138,15 @@ def main(argv: list[str] | None = None) -> int:
             "speedup": plain_s / wall, "efficiency_pct": 100.0 * plain_s / (wall * nw),
             "wall_overhead_per_job_s": (nw * wall - plain_s) / n,
             "cpu_s": cpu, "cpu_overhead_per_job_s": (cpu - plain_cpu) / n,
+            "task_cpu_s": sum(r["cpu_s"] for r in res.rows),
             "x_realtime": log_s / wall, "load1": os.getloadavg()[0],
         })
         print(f"{nw} worker(s): {wall:.1f} s", file=sys.stderr)
         if not args.keep:
             shutil.rmtree(out, ignore_errors=True)
     cols = ["run", "workers", "wall_s", "startup_s", "speedup", "efficiency_pct",
-            "wall_overhead_per_job_s", "cpu_s", "cpu_overhead_per_job_s", "x_realtime",
+            "wall_overhead_per_job_s", "cpu_s", "task_cpu_s", "cpu_overhead_per_job_s",
+            "x_realtime",
             "load1"]
     shown = [{k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()} for r in rows]
     print(f"method {args.method}, {n} logs x {args.duration:g} s, {os.cpu_count()} cores, "

@@ -153,7 +153,8 @@ def _check_good(result: fleet.BatchResult, logs: dict[str, list[Path]], out: Pat
         assert row["status"] == "ok", row
         tum = out / f"{lg.stem}.{METHOD.value}.tum"
         assert tum.read_bytes() == ref.read_bytes(), f"{lg.name}: differs from run_log"
-        assert row["poses"] > 100
+        lines = [ln for ln in tum.read_text().splitlines() if not ln.startswith("#")]
+        assert row["poses"] == len(lines) >= 10
         assert row["ate_align"] == "se2" and 0 < row["ate2d_rmse_m"] <= row["ate3d_rmse_m"] < 1
         assert row["duration_s"] == pytest.approx(12.0, abs=0.5)
 

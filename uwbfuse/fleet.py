@@ -67,7 +67,7 @@ MAX_ERROR_CHARS = 400
 
 SUMMARY_COLUMNS: tuple[str, ...] = (
     "log", "status", "error", "duration_s", "poses", "ate2d_rmse_m", "ate3d_rmse_m",
-    "ate_align", "wall_s", "read_s",
+    "ate_align", "wall_s", "cpu_s", "read_s",
     "estimate_s", "realtime_factor", "skipped", "tum", "host", "resumed",
 )
 """Columns of `summary.csv` / `summary.md`, in order."""
@@ -506,6 +506,7 @@ def run_batch_job(spec: BatchJobSpec) -> BatchJobOutput:
     from uwbfuse.pipeline import estimate
 
     tic = time.perf_counter()
+    cpu0 = time.thread_time()
     row: dict[str, Any] = {
         "log": spec.log, "status": "failed", "error": "",
         "host": f"{socket.gethostname()}:{os.getpid()}",
@@ -534,7 +535,7 @@ def run_batch_job(spec: BatchJobSpec) -> BatchJobOutput:
             realtime_factor=res.realtime_factor,
             skipped=sum(sensor_log.report.skipped.values()),
         )
-        row["wall_s"] = time.perf_counter() - tic
+        row.update(wall_s=time.perf_counter() - tic, cpu_s=time.thread_time() - cpu0)
         return BatchJobOutput(row, tum, None, fingerprint)
     except UwbfuseError as e:
         row.update(error=one_line(str(e)), wall_s=time.perf_counter() - tic)
