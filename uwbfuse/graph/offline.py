@@ -33,6 +33,8 @@ from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
 
+EM_ROUND_LM_ITERATIONS = 6  # LM iterations of an intermediate EM round
+
 
 @dataclass
 class BatchResult:
@@ -153,7 +155,9 @@ def solve(
     r_nlos = np.zeros(len(h))
     sig_l = mix.sigma_los if g_cfg.nlos else uwb.sigma
 
-    def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool) -> gtsam.Values:
+    def lm_round(
+        vals: gtsam.Values, g: np.ndarray, frozen: bool, max_it: int | None = None
+    ) -> gtsam.Values:
         nonlocal total_it
         graph = gtsam.NonlinearFactorGraph(base_graph)
         if frozen:
@@ -183,7 +187,7 @@ def solve(
                                        mix.sigma_nlos / np.sqrt(g[j]), t_tag, uwb,
                                        states.keys[st_idx[j]]))
         params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(g_cfg.lm_max_iterations)
+        params.setMaxIterations(max_it or g_cfg.lm_max_iterations)
         params.setRelativeErrorTol(1e-4)
         params.setAbsoluteErrorTol(1e-6)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
@@ -209,7 +213,8 @@ def solve(
         if g_prev is not None and np.mean(np.abs(g - g_prev) > 0.2) < 0.01:
             break
         g_prev = g
-        values = lm_round(values, g, freeze)
+        # intermediate EM rounds only need LM to get close: the next E-step moves anyway
+        values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
         done = it + 1
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
