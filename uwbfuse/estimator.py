@@ -75,6 +75,70 @@ class Estimator(Protocol):
         """Estimator-specific results for the run summary (outliers, biases, events)."""
 
 
+class WithFallback:
+    """`primary`, with `fallback`'s pose at the epochs before `primary` has one.
+
+    Causal estimators need a few seconds of motion to fix their heading; the contract
+    wants poses from the first motion on. The fallback (UWB-only WLS for ranging methods)
+    gives those epochs a provisional pose; it is fed until the primary has answered
+    `DROP_AFTER_EPOCHS` epochs in a row.
+    `finish()` and `report()` are the primary's (the report counts the fallback epochs).
+    """
+
+    DROP_AFTER_EPOCHS = 20
+    """The fallback is dropped once the primary has answered this many epochs in a row."""
+
+    def __init__(self, primary: Estimator, fallback: Estimator) -> None:
+        self.primary = primary
+        self.fallback: Estimator | None = fallback
+        self.fallback_epochs = 0
+        self._current: PoseEstimate | None = None
+        self._primary_streak = 0
+
+    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        self.primary.add_imu(t_ns, gyro, accel)
+        if self.fallback is not None:
+            self.fallback.add_imu(t_ns, gyro, accel)
+
+    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        self.primary.add_wheel(t_ns, v, omega)
+        if self.fallback is not None:
+            self.fallback.add_wheel(t_ns, v, omega)
+
+    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
+        self.primary.add_ranges(t_ns, anchor, rng)
+        if self.fallback is not None:
+            self.fallback.add_ranges(t_ns, anchor, rng)
+
+    def step(self, t_ns: int) -> None:
+        self.primary.step(t_ns)
+        self._current = self.primary.estimate()
+        if self._current is not None:
+            self._primary_streak += 1
+            if self._primary_streak >= self.DROP_AFTER_EPOCHS:
+                self.fallback = None  # the primary is up for good: free the buffers
+            elif self.fallback is not None:
+                self.fallback.step(t_ns)  # keep it current in case the primary drops out
+            return
+        self._primary_streak = 0
+        if self.fallback is not None:
+            self.fallback.step(t_ns)
+            self._current = self.fallback.estimate()
+            if self._current is not None:
+                self.fallback_epochs += 1
+
+    def estimate(self) -> PoseEstimate | None:
+        return self._current
+
+    def finish(self) -> PoseStream | None:
+        return self.primary.finish()
+
+    def report(self) -> dict[str, Any]:
+        out = dict(self.primary.report())
+        out["provisional_epochs"] = self.fallback_epochs
+        return out
+
+
 @dataclass
 class StreamingResult:
     """Outputs of one streaming pass."""
@@ -143,6 +207,11 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
         latency[k] = time.perf_counter() - tic
         est = estimator.estimate()
         if est is not None:
+            if est.t_ns != t:
+                raise RuntimeError(
+                    f"{type(estimator).__name__}.estimate() returned a pose stamped "
+                    f"{est.t_ns} ns at epoch {int(t)} ns (must be the step time)"
+                )
             poses.append(est)
     final = estimator.finish()
     wall = time.perf_counter() - wall0

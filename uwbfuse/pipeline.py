@@ -17,7 +17,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError
-from uwbfuse.estimator import Method, output_epochs, run_streaming
+from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
 from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
 
@@ -87,6 +87,11 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
         source=log.source, report=log.report,
     )
     estimator = make_estimator(method, config, log.anchors, streams)
+    if method is not Method.WLS and "uwb" in streams and log.anchors is not None:
+        # Poses from the first motion on (contract): UWB-only fixes until the method has
+        # its own start (heading needs some motion).
+        fallback = make_estimator(Method.WLS, config, log.anchors, streams)
+        estimator = WithFallback(estimator, fallback)
     epochs = output_epochs(sensors_only, config.output.rate)
     res = run_streaming(estimator, sensors_only, epochs)
     smoothed = method in (Method.ISAM2_SMOOTHED, Method.BATCH)

@@ -221,7 +221,10 @@ class StreamingFilter:
         if self._init_pending:
             state = self.initialiser.try_initialise(int(t_ns))
             if state is None:
-                self._provisional = self.initialiser.provisional(int(t_ns))
+                p = self.initialiser.provisional(int(t_ns))
+                # Only a pose that refers to this epoch: an older heading candidate would
+                # be written at a stale stamp (the pipeline's WLS fallback covers those).
+                self._provisional = p if p is not None and int(p.t_ns) == int(t_ns) else None
                 return
             self._provisional = None
             self._init_pending = False

@@ -303,14 +303,16 @@ class Initialiser:
         """A best-effort state at t_ns before `try_initialise` succeeds, or None.
 
         For estimators that must write poses from the first motion while the heading is not
-        yet determined: the latest heading solution (even if not accepted) when it is less
-        than `_RETRY_S` * 2 old, else the tag position from the recent UWB fixes with the
-        levelled attitude, yaw 0 and yaw_sigma = pi. Never use it as a filter's start state
-        without its yaw_sigma.
+        yet determined: the latest heading solution (even if not accepted) when it was made
+        at t_ns; otherwise the tag position from the recent UWB fixes with the attitude of a
+        heading candidate less than `_RETRY_S` * 2 old, else the levelled attitude with yaw
+        0 and yaw_sigma = pi. The state always refers to t_ns. Never use it as a filter's
+        start state without its yaw_sigma.
         """
         c = self._candidate
-        if c is not None and 0 <= t_ns - c.t_ns <= 2 * _RETRY_S * NS_PER_S:
+        if c is not None and c.t_ns == t_ns:
             return c
+        recent = c is not None and 0 <= t_ns - c.t_ns <= 2 * _RETRY_S * NS_PER_S
         if not self.has_uwb:
             return None
         rng = self._upto(self._cat("rng"), t_ns)
@@ -322,11 +324,16 @@ class Initialiser:
         tag = np.median(pf[okf], axis=0)
         spread = float(np.median(np.linalg.norm(pf[okf] - tag, axis=1))) * 1.4826
         r_level = self._r_level if self._r_level is not None else np.eye(3)
+        yaw_sigma = math.pi
+        if recent:
+            # The last heading candidate's attitude (not accepted yet, but better than 0).
+            assert c is not None
+            r_level, yaw_sigma = np.asarray(c.R_map_base), float(c.yaw_sigma)
         return InitialState(
             t_ns=int(t_ns), position=tag - r_level @ self.lever, R_map_base=r_level,
             velocity=np.zeros(3), gyro_bias=np.zeros(3), accel_bias=np.zeros(3),
             position_sigma=max(spread, float(np.linalg.norm(self.lever[:2])), 0.05),
-            yaw_sigma=math.pi, still=False,
+            yaw_sigma=yaw_sigma, still=False,
         )
 
     @staticmethod

@@ -1,0 +1,35 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The contract's output density: >= 10 poses per second from the first motion on."""
+
+import numpy as np
+import pytest
+
+from uwbfuse.config import Config
+from uwbfuse.estimator import Method
+from uwbfuse.pipeline import estimate
+from uwbfuse.sim.simulator import SimResult, simulate_with_truth
+from uwbfuse.streams import NS_PER_S
+
+METHODS = [m for m in Method]
+
+
+@pytest.fixture(scope="module", params=["factory", "room"])
+def sim(request: pytest.FixtureRequest) -> SimResult:
+    # factory: 0.5 m/s; room: 0.1 m/s, where the heading takes longest to fix.
+    return simulate_with_truth(request.param, duration_s=30.0, seed=5)
+
+
+@pytest.mark.parametrize("method", METHODS, ids=[m.value for m in METHODS])
+def test_poses_from_first_motion_to_the_end(sim: SimResult, method: Method) -> None:
+    """test that every method writes >= 10 poses/s, without gaps, from the first motion"""
+    gt = sim.log.ground_truth
+    t_motion = int(gt.t_ns[np.argmax(sim.moving)])
+    t_end = int(sim.log.time_span_ns()[1])
+    traj = estimate(sim.log, method, Config()).trajectory
+    inside = traj.t_ns[(traj.t_ns >= t_motion) & (traj.t_ns <= t_end)]
+    span_s = (t_end - t_motion) / NS_PER_S
+    assert len(inside) >= 10 * span_s - 1, f"{len(inside)} poses over {span_s:.1f} s"
+    assert inside[0] - t_motion <= 0.1 * NS_PER_S
+    assert np.max(np.diff(inside)) <= 0.1 * NS_PER_S + 1
+    assert np.all(np.diff(traj.t_ns) > 0)
+    assert np.all(np.isfinite(traj.position)) and np.all(np.isfinite(traj.quat_xyzw))
