@@ -13,6 +13,7 @@ from mcap.reader import make_reader
 from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory
 
+from uwbfuse.errors import LogWriteError
 from uwbfuse.io import cdr_fast, msgdefs
 from uwbfuse.io.writer import write_contract_log
 from uwbfuse.streams import AnchorMap, ImuStream, PoseStream, RangeStream, SensorLog, WheelStream
@@ -129,7 +130,7 @@ def test_writer_is_atomic(tmp_path: Path) -> None:
 def test_writer_failure_mid_write_keeps_old_file(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """test that an error while writing leaves an existing target untouched, no temp file."""
+    """test that an error while writing is one LogWriteError, the old target untouched"""
     import uwbfuse.io.writer as writer_mod
 
     out = tmp_path / "log.mcap"
@@ -139,7 +140,7 @@ def test_writer_failure_mid_write_keeps_old_file(
         raise OSError("disk full")
 
     monkeypatch.setattr(writer_mod, "write_mcap", boom)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(LogWriteError, match="cannot write log: disk full"):
         write_contract_log(out, small_log(20))
     assert out.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["log.mcap"]

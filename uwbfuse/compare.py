@@ -13,8 +13,6 @@ import csv
 import io
 import logging
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +22,7 @@ from uwbfuse.config import Config, dump_config, load_config
 from uwbfuse.errors import ConfigError, UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.eval.evaluate import EvalResult, evaluate
+from uwbfuse.io.atomic import write_atomic
 from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
 
 log = logging.getLogger(__name__)
@@ -107,14 +106,7 @@ def parse_methods(methods: str | list[str]) -> list[Method]:
 
 def write_text_atomic(path: Path, text: str) -> None:
     """Write `text` to `path` whole or not at all (temporary file + rename)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text, error=ConfigError, what="output")
 
 
 def run_methods(

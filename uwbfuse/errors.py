@@ -18,6 +18,10 @@ class LogReadError(UwbfuseError):
     """A log cannot be read: missing, not MCAP, truncated beyond use, missing topic."""
 
 
+class LogWriteError(UwbfuseError):
+    """A log (MCAP) cannot be written: folder missing, no permission, disk full."""
+
+
 class AnchorMapError(UwbfuseError):
     """No anchor map (neither `[anchors]` nor the `uwb_anchors` metadata record)."""
 

@@ -53,6 +53,7 @@ from typing import Any
 from uwbfuse.config import Config, config_from_dict, dump_config, load_config
 from uwbfuse.errors import FleetError, UwbfuseError
 from uwbfuse.estimator import Method
+from uwbfuse.io import atomic
 from uwbfuse.progress import ProgressFn
 from uwbfuse.streams import PoseStream
 
@@ -78,28 +79,14 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
 
 
 def write_atomic(path: str | Path, data: bytes | str) -> None:
-    """Write `data` to `path` whole or not at all (temporary file in the same directory,
-    fsync, rename). Raises FleetError naming the file on failure."""
+    """Write `data` to `path` whole or not at all (fsync, rename), creating the folder.
+    Raises FleetError naming the file on failure."""
     p = Path(path)
-    payload = data.encode("utf-8") if isinstance(data, str) else data
-    tmp: str | None = None
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-        tmp = None
     except OSError as e:
-        raise FleetError(f"{p}: cannot write: {e.strerror or e}") from None
-    finally:
-        if tmp is not None:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
+        raise FleetError(f"{p.parent}: cannot create folder: {e.strerror or e}") from None
+    atomic.write_atomic(p, data, error=FleetError, what="file", fsync=True)
 
 
 def _cell(value: Any) -> str:

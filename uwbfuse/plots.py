@@ -165,9 +165,13 @@ def _wide_range(rows: list[MethodRow]) -> bool:
 
 
 def _save(fig: object, path: Path, plt: object) -> Path:
-    tmp = path.with_name(f".{path.stem}.tmp.png")
+    from uwbfuse.errors import ConfigError
+    from uwbfuse.io.atomic import atomic_open
+
     fig.tight_layout()
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        with atomic_open(path, "wb", error=ConfigError, what="plot") as f:
+            fig.savefig(f, dpi=110, format="png")
+    finally:
+        plt.close(fig)
     return path

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +30,7 @@ from uwbfuse.eval.metrics import (
     stats,
     yaw_errors,
 )
+from uwbfuse.io.atomic import write_atomic
 from uwbfuse.streams import F64, I64, NS_PER_S, PoseStream
 
 MIN_PAIRS = 3
@@ -176,23 +175,8 @@ class EvalResult:
     def write_json(self, path: str | Path) -> None:
         """Write `as_dict()` to `path` as JSON, atomically (temporary file + rename)."""
         p = Path(path)
-        directory = p.parent if str(p.parent) else Path(".")
         text = json.dumps(self.as_dict(), indent=2) + "\n"
-        tmp_name = None
-        try:
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                f.write(text)
-            os.replace(tmp_name, p)
-            tmp_name = None
-        except OSError as e:
-            raise EvaluationError(f"{p}: cannot write metrics: {e.strerror or e}") from None
-        finally:
-            if tmp_name is not None:
-                try:
-                    os.unlink(tmp_name)
-                except OSError:
-                    pass
+        write_atomic(p, text, error=EvaluationError, what="metrics")
 
 
 def _span(p: PoseStream) -> str:

@@ -9,11 +9,10 @@ compressed: zstd/lz4 are optional packages for the reader side, and a pose file 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 from uwbfuse.errors import TrajectoryFileError
+from uwbfuse.io.atomic import atomic_open
 from uwbfuse.streams import NS_PER_S, PoseStream
 
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -65,41 +64,27 @@ def write_pose_mcap(path: str | Path, poses: PoseStream, method: str) -> None:
 
     p = Path(path)
     topic = pose_topic(method)
-    directory = p.parent if str(p.parent) else Path(".")
-    tmp_name = None
-    try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
-        with os.fdopen(fd, "wb") as f:
-            writer = Writer(f, compression=CompressionType.NONE)
-            schema = writer.register_msgdef(POSE_STAMPED, POSE_STAMPED_MSGDEF)
-            for seq, (t, xyz, q) in enumerate(
-                zip(
-                    poses.t_ns.tolist(),
-                    poses.position.tolist(),
-                    poses.quat_xyzw.tolist(),
-                    strict=True,
-                )
-            ):
-                sec, nsec = divmod(int(t), NS_PER_S)
-                msg = {
-                    "header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": FRAME_ID},
-                    "pose": {
-                        "position": {"x": xyz[0], "y": xyz[1], "z": xyz[2]},
-                        "orientation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]},
-                    },
-                }
-                writer.write_message(
-                    topic, schema, msg, log_time=max(int(t), 0), publish_time=max(int(t), 0),
-                    sequence=seq,
-                )
-            writer.finish()
-        os.replace(tmp_name, p)
-        tmp_name = None
-    except OSError as e:
-        raise TrajectoryFileError(f"{p}: cannot write MCAP trajectory: {e.strerror or e}") from None
-    finally:
-        if tmp_name is not None:
-            try:
-                os.unlink(tmp_name)
-            except OSError:
-                pass
+    with atomic_open(p, "wb", error=TrajectoryFileError, what="MCAP trajectory") as f:
+        writer = Writer(f, compression=CompressionType.NONE)
+        schema = writer.register_msgdef(POSE_STAMPED, POSE_STAMPED_MSGDEF)
+        for seq, (t, xyz, q) in enumerate(
+            zip(
+                poses.t_ns.tolist(),
+                poses.position.tolist(),
+                poses.quat_xyzw.tolist(),
+                strict=True,
+            )
+        ):
+            sec, nsec = divmod(int(t), NS_PER_S)
+            msg = {
+                "header": {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": FRAME_ID},
+                "pose": {
+                    "position": {"x": xyz[0], "y": xyz[1], "z": xyz[2]},
+                    "orientation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]},
+                },
+            }
+            writer.write_message(
+                topic, schema, msg, log_time=max(int(t), 0), publish_time=max(int(t), 0),
+                sequence=seq,
+            )
+        writer.finish()

@@ -9,15 +9,14 @@ base frame in the map frame, quaternions in (x, y, z, w) order.
 from __future__ import annotations
 
 import logging
-import os
 import re
-import tempfile
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
 from uwbfuse.errors import TrajectoryFileError
+from uwbfuse.io.atomic import atomic_open
 from uwbfuse.streams import NS_PER_S, PoseStream
 
 log = logging.getLogger(__name__)
@@ -70,22 +69,8 @@ def write_tum(path: str | Path, poses: PoseStream) -> None:
             poses.t_ns.tolist(), pos.tolist(), quat.tolist(), strict=True
         )
     )
-    directory = p.parent if str(p.parent) else Path(".")
-    tmp_name = None
-    try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.writelines(lines)
-        os.replace(tmp_name, p)
-        tmp_name = None
-    except OSError as e:
-        raise TrajectoryFileError(f"{p}: cannot write trajectory: {e.strerror or e}") from None
-    finally:
-        if tmp_name is not None:
-            try:
-                os.unlink(tmp_name)
-            except OSError:
-                pass
+    with atomic_open(p, "w", error=TrajectoryFileError, what="trajectory") as f:
+        f.writelines(lines)
 
 
 def read_tum(path: str | Path) -> PoseStream:

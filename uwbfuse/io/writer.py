@@ -16,15 +16,15 @@ leaves no partial file.
 from __future__ import annotations
 
 import json
-import os
-import secrets
 from pathlib import Path
 
 import numpy as np
 from mcap.well_known import MessageEncoding, SchemaEncoding
 
 from uwbfuse.config import Topics
+from uwbfuse.errors import LogWriteError
 from uwbfuse.io import cdr_fast, msgdefs
+from uwbfuse.io.atomic import atomic_open
 from uwbfuse.io.mcap_write import ChannelDef, SchemaDef, write_mcap
 from uwbfuse.streams import SensorLog
 
@@ -100,16 +100,8 @@ def write_contract_log(
     every = [d for s in streams for d in s[3]]
     datas = [every[i] for i in order.tolist()]
     meta = anchors_metadata(log)
-    tmp = path.parent / f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"
-    try:
-        with tmp.open("xb") as f:
-            write_mcap(f, schemas=schemas, channels=channels, channel=which[order],
-                       log_time=stamps[order], datas=datas,
-                       metadata=[(ANCHORS_METADATA, meta)] if meta else [],
-                       library=LIBRARY, compression=compression, chunk_size=chunk_size)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_open(path, "wb", error=LogWriteError, what="log", fsync=True) as f:
+        write_mcap(f, schemas=schemas, channels=channels, channel=which[order],
+                   log_time=stamps[order], datas=datas,
+                   metadata=[(ANCHORS_METADATA, meta)] if meta else [],
+                   library=LIBRARY, compression=compression, chunk_size=chunk_size)
