@@ -33,3 +33,15 @@ def test_poses_from_first_motion_to_the_end(sim: SimResult, method: Method) -> N
     assert np.max(np.diff(inside)) <= 0.1 * NS_PER_S + 1
     assert np.all(np.diff(traj.t_ns) > 0)
     assert np.all(np.isfinite(traj.position)) and np.all(np.isfinite(traj.quat_xyzw))
+
+
+@pytest.mark.parametrize("method", [Method.BATCH, Method.ISAM2_SMOOTHED, Method.ISAM2])
+def test_smoothers_cover_the_start_without_wheels(method: Method) -> None:
+    """test that smoothers on an IMU + UWB log (no wheels) still cover the first motion"""
+    sim = simulate_with_truth("factory", duration_s=30.0, seed=6, streams=("imu", "uwb"))
+    gt = sim.log.ground_truth
+    t_motion = int(gt.t_ns[np.argmax(sim.moving)])
+    traj = estimate(sim.log, method, Config()).trajectory
+    assert traj.t_ns[0] <= t_motion + 0.1 * NS_PER_S
+    after = traj.t_ns[traj.t_ns >= t_motion]
+    assert np.max(np.diff(after)) <= 0.1 * NS_PER_S + 1

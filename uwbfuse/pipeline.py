@@ -98,6 +98,17 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
     if smoothed and res.final is None:
         raise EstimatorError(f"method {method.value} produced no final trajectory")
     traj = res.final if smoothed and res.final is not None else res.causal
+    if smoothed and len(traj) and len(res.causal):
+        # A smoother starts at its own initialisation; the epochs before it keep their
+        # causal (provisional) poses so the output covers the log from the first motion.
+        head = res.causal.t_ns < traj.t_ns[0]
+        if np.any(head):
+            traj = PoseStream(
+                np.concatenate([res.causal.t_ns[head], traj.t_ns]),
+                np.concatenate([res.causal.position[head], traj.position]),
+                np.concatenate([res.causal.quat_xyzw[head], traj.quat_xyzw]),
+                traj.has_orientation,
+            )
     if len(traj) == 0:
         raise EstimatorError(
             f"{log.source}: method {method.value} never initialised (no pose estimated)"
