@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: BSD-3-Clause
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from uwbfuse.compare import parse_methods, run_methods
@@ -45,3 +46,30 @@ def test_plots_are_written(room_log: SensorLog, tmp_path: Path) -> None:
     for p in files:
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list(tmp_path.glob(".*tmp*"))
+
+
+def test_compare_with_ground_truth_in_another_frame(room_log: SensorLog, tmp_path: Path) -> None:
+    """test that --gt with se3 alignment scores a log whose GT lives in another frame"""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    from uwbfuse.compare import compare_log
+    from uwbfuse.io.tum import write_tum
+    from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.streams import PoseStream
+
+    gt = room_log.ground_truth
+    assert gt is not None
+    rot = Rotation.from_euler("z", 70, degrees=True)
+    moved = PoseStream(gt.t_ns, rot.apply(gt.position) + np.array([5.0, -3.0, 1.0]),
+                       (rot * Rotation.from_quat(gt.quat_xyzw)).as_quat())
+    write_tum(tmp_path / "gt.tum", moved)
+    write_contract_log(tmp_path / "log.mcap", replace(room_log, ground_truth=None))
+    res = compare_log(tmp_path / "log.mcap", "wls", out_dir=tmp_path / "out",
+                      gt_path=tmp_path / "gt.tum", align="se3")
+    aligned = res.rows[0].metrics
+    assert aligned is not None and aligned.ate_2d.rmse < 0.15
+    res = compare_log(tmp_path / "log.mcap", "wls", out_dir=tmp_path / "out2",
+                      gt_path=tmp_path / "gt.tum")
+    assert res.rows[0].metrics is not None and res.rows[0].metrics.ate_2d.rmse > 1.0

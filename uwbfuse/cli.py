@@ -114,7 +114,8 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from uwbfuse.compare import compare_log
 
     result = compare_log(
-        args.log, methods=args.methods, config_path=args.config, out_dir=args.out
+        args.log, methods=args.methods, config_path=args.config, out_dir=args.out,
+        gt_path=args.gt, align=args.align,
     )
     print(result.markdown(), end="")
     print(f"wrote {len(result.files)} files to {result.out_dir}/")
@@ -217,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--methods", default="isam2,batch,ekf,ukf,wls,imu,odom")
     c.add_argument("--config", metavar="FILE")
     c.add_argument("--out", default="compare_out", metavar="DIR")
+    c.add_argument("--gt", metavar="GT.tum", help="ground truth when the log has none")
+    c.add_argument("--align", default="none", choices=["none", "se2", "se3"],
+                   help="align each estimate to a ground truth in another frame")
     c.set_defaults(func=_cmd_compare)
 
     m = sub.add_parser("montecarlo", help="repeat simulated runs over seeds")

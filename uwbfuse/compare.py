@@ -110,9 +110,11 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 
 def run_methods(
-    log_data: SensorLog, methods: list[Method], config: Config, max_dt: float
+    log_data: SensorLog, methods: list[Method], config: Config, max_dt: float,
+    align: str = "none",
 ) -> list[MethodRow]:
-    """Run each method on the already-read log and score it against its ground truth."""
+    """Run each method on the already-read log and score it against its ground truth
+    (`align`: none | se2 | se3, for ground truth in another frame)."""
     from uwbfuse.pipeline import estimate
 
     rows = []
@@ -131,7 +133,7 @@ def run_methods(
         if gt is not None and len(gt):
             try:
                 row.metrics = evaluate(
-                    res.trajectory, gt, max_dt=max_dt, est_name=method.value,
+                    res.trajectory, gt, align=align, max_dt=max_dt, est_name=method.value,
                     gt_name="ground truth",
                 )
             except UwbfuseError as e:
@@ -146,10 +148,17 @@ def compare_log(
     config_path: str | Path | None = None,
     out_dir: str | Path = "compare_out",
     max_dt: float | None = None,
+    gt_path: str | Path | None = None,
+    align: str = "none",
 ) -> CompareResult:
-    """Run `methods` on the log, write table, trajectories, plots and config to `out_dir`."""
+    """Run `methods` on the log, write table, trajectories, plots and config to `out_dir`.
+
+    gt_path: ground truth as a TUM file when the log has none on its topic; align: none |
+    se2 | se3 when that ground truth is in another frame (plots then show it moved into
+    the map frame by the best method's alignment).
+    """
     from uwbfuse.io.reader import read_log
-    from uwbfuse.io.tum import write_tum
+    from uwbfuse.io.tum import read_tum, write_tum
 
     config = load_config(config_path)
     method_list = parse_methods(methods)
@@ -159,9 +168,12 @@ def compare_log(
     except OSError as e:
         raise ConfigError(f"{out}: cannot create output folder: {e.strerror or e}") from None
     log_data = read_log(log_path, config)
+    if gt_path is not None:
+        log_data.ground_truth = read_tum(gt_path)
     # Estimates come at the output rate; associate within half an output period.
     tol = max_dt if max_dt is not None else 0.5 / config.output.rate
-    rows = run_methods(log_data, method_list, config, tol)
+    rows = run_methods(log_data, method_list, config, tol, align)
+    plot_log = _gt_in_map_frame(log_data, rows) if align != "none" else log_data
 
     result = CompareResult(str(log_path), rows, out)
     for row in rows:
@@ -184,8 +196,28 @@ def compare_log(
 
     from uwbfuse.plots import plot_comparison
 
-    result.files.extend(plot_comparison(log_data, rows, config, out))
+    result.files.extend(plot_comparison(plot_log, rows, config, out))
     return result
+
+
+def _gt_in_map_frame(log_data: SensorLog, rows: list[MethodRow]) -> SensorLog:
+    """The log with its ground truth moved into the map frame by the inverse alignment of
+    the best-ranked scored method (smoothers first), for plotting over the anchors."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    gt = log_data.ground_truth
+    scored = {r.method: r for r in rows if r.metrics is not None}
+    order = ["batch", "isam2-smoothed", "isam2", "ekf", "ukf", "lkf", "wls"]
+    pick = next((scored[m] for m in order if m in scored), None)
+    if gt is None or pick is None:
+        return log_data
+    tf = pick.metrics.transform
+    pos = (gt.position - tf.translation) @ tf.rotation
+    quat = (Rotation.from_matrix(tf.rotation.T) * Rotation.from_quat(gt.quat_xyzw)).as_quat()
+    moved = PoseStream(gt.t_ns, pos, quat, gt.has_orientation)
+    return replace(log_data, ground_truth=moved)
 
 
 def range_residuals(
