@@ -72,6 +72,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     )
     from uwbfuse.report import format_report
 
+    for line in res.read_report.lines():
+        print(f"read: {line}", file=sys.stderr)
     for line in format_report(res.report):
         print(line)
     return 0

@@ -19,7 +19,7 @@ from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError
 from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
-from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
+from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,7 @@ class RunResult:
     read_wall_s: float
     log_duration_s: float
     report: dict[str, Any] = field(default_factory=dict)
+    read_report: ReadReport = field(default_factory=ReadReport)
 
     @property
     def realtime_factor(self) -> float:
@@ -124,6 +125,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
         read_wall_s=0.0,
         log_duration_s=(t1 - t0) / NS_PER_S,
         report=res.report,
+        read_report=log.report,
     )
 
 
