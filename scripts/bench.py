@@ -1,7 +1,7 @@
 # SPDX-License-Identifier: BSD-3-Clause
 """Benchmark the graph estimators on simulated 10-minute and 1-hour logs.
 
-    python scripts/bench.py [--durations 600,3600] [--methods isam2,batch]
+    python scripts/bench.py [--durations 600,3600] [--methods isam2,batch,ekf,ukf]
                             [--scenario warehouse] [--work DIR]
 
 Each log is simulated once and written as a contract MCAP (cached in the work directory).
@@ -82,7 +82,7 @@ def run_one(log_path: str, method: str) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--durations", default="600,3600", help="log lengths, seconds")
-    ap.add_argument("--methods", default="isam2,batch")
+    ap.add_argument("--methods", default="isam2,batch,ekf,ukf")
     ap.add_argument("--scenario", default="warehouse")
     ap.add_argument("--work", default="/tmp/uwbfuse-bench")
     ap.add_argument("--one", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
