@@ -123,8 +123,12 @@ def test_nlos_modelling_beats_huber_alone():
     huber_only.graph.nlos = False
     a = _ate(estimate(log, Method.BATCH, with_model).trajectory, log)
     b = _ate(estimate(log, Method.BATCH, huber_only).trajectory, log)
-    assert a < 0.2  # measured 0.12
-    assert a < 0.5 * b  # measured 0.12 against 0.59
+    e = _ate(estimate(log, Method.EKF, with_model).trajectory, log)
+    # measured (seeds 0/1): 0.102/0.156 with the NLOS model (NLOS-first EM start), 0.59/0.55
+    # Huber alone, EKF 0.55/0.41; on 180 s (seeds 0-3) 0.09/0.18/0.05/0.06
+    assert a < 0.15
+    assert a < 0.3 * b
+    assert a < 0.6 * e  # issue 3: batch at least 40 % below the EKF
 
 
 def test_range_bias_is_recovered():
