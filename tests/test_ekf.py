@@ -134,6 +134,7 @@ def _run_nees(drop: tuple[str, ...], seeds: tuple[int, ...]) -> tuple[float, flo
     sim = {**LOS, "wheel_scale_sigma": 0.0, "slip_rate": 0.0}
     sc = get_scenario("warehouse")
     cfg = Config()
+    cfg.ekf.imu_noise_inflation = 1.0   # the simulated IMU follows the [imu] figures exactly
     cfg.uwb.sigma = sc.los_sigma
     cfg.wheel.sigma_v = sc.wheel_sigma_v
     cfg.wheel.sigma_lateral = 0.003
@@ -263,10 +264,10 @@ def test_real_labyrinth_wheels_and_uwb(method: Method) -> None:
 
 @pytest.mark.parametrize("method", [Method.EKF, Method.UKF])
 def test_real_isas_walk_handheld_imu_and_uwb(method: Method) -> None:
-    """Test both filters on the real handheld ISAS walk (IMU + UWB in 3-D, array ranges).
+    """Test both filters on the real handheld ISAS walk (consumer IMU + UWB in 3-D).
 
-    The start state from the sensors is poor here (the IMU-only heading solve of a walking
-    person), so the filters lean on the divergence recovery for the first seconds.
+    Scored as the dataset's README prescribes: Vive ground truth, SE(3)-aligned on
+    positions. Default config (the log's own config.toml: anchors, extrinsics, topics).
     """
     from uwbfuse.io.reader import read_log
     from uwbfuse.io.tum import read_tum
@@ -274,10 +275,15 @@ def test_real_isas_walk_handheld_imu_and_uwb(method: Method) -> None:
     cfg = load_config(real("isas-walk1/config.toml"))
     log = read_log(real("isas-walk1/ISAS-Walk1"), cfg)
     res = estimate(log, method, cfg)
-    gt = read_tum(real("isas-walk1/gt_anchor_frame.tum"))
-    ev = evaluate(res.trajectory, gt, max_dt=0.1)
+    ev = evaluate(res.trajectory, read_tum(real("isas-walk1/gt.tum")), align="se3", max_dt=0.05)
     assert res.report["mode"] == "imu"
     assert np.all(np.isfinite(res.trajectory.position))
-    # Measured: 2-D ATE RMSE 0.33 m (EKF), 0.7-1.9 m (UKF); median well below 1 m.
-    assert ev.ate_2d.median < 1.0
-    assert ev.ate_2d.rmse < 3.0
+    # Every ranging epoch is published twice: the copies are dropped, not counted twice.
+    assert res.report["repeated_ranges"] > 1500
+    # Measured: 2-D ATE RMSE 0.177 m (EKF), 0.175 m (UKF); 3-D 0.27 m (UWB-only WLS: 0.137
+    # and 0.225 m; the filters report the IMU, about 0.1 m from the tag the tracker sits by).
+    # Before the [ekf] imu_noise_inflation / short-range recovery / moving-start fixes:
+    # 0.61 m (EKF) and 0.72 m (UKF), 3-D 1.06 m.
+    assert ev.ate_2d.rmse < 0.25
+    assert ev.ate_3d.rmse < 0.40
+    assert ev.coverage > 0.9

@@ -213,6 +213,13 @@ class GraphConfig(_Section):
 
 
 class FilterConfig(_Section):
+    imu_noise_inflation: float = Field(
+        30.0, gt=0, description="factor on the [imu] noise densities and bias random walks in "
+        "the EKF/UKF process noise: room for what a consumer MEMS does beyond its white noise "
+        "(scale, misalignment, vibration, timing) between 0.1 s windows; too tight a process "
+        "noise makes the filter overconfident, gate good ranges and diverge (ISAS-Walk1: "
+        "ATE 0.6 m at 1, 0.18 m at 30); 1 = trust the [imu] figures as they are"
+    )
     gate_probability: float = Field(
         0.999, gt=0, lt=1, description="chi-square innovation gate (0..1); 1 - p is rejected"
     )

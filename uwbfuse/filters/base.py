@@ -96,6 +96,11 @@ class _Pending:
 
 #: Longest stretch of time handled as one predict/update window, ns.
 MAX_WINDOW_NS = 100_000_000
+#: A range bit-identical to the previous range of its anchor within this time is a
+#: re-publication of the same measurement (some RTLS devices send every ranging epoch twice,
+#: about 50 ms apart, with new stamps: ISAS-Walk1), not a new one; it is dropped so that it
+#: does not count twice. Independent noisy ranges practically never repeat to the bit.
+REPEAT_NS = 150_000_000
 
 
 class StreamingFilter:
@@ -123,6 +128,13 @@ class StreamingFilter:
     INFLATE_VEL = 0.04
     STREAK_NS = 2_000_000_000
     MAX_STREAK = 2
+    #: Recovery also when one anchor's ranges are gated SHORT_RUN times in a row while
+    #: reading shorter than predicted. NLOS and multipath only lengthen a range, so a
+    #: persistently short one means the state is off, typically in a false basin of the
+    #: range geometry that the other anchors fit (ISAS-Walk1: the height drifts 1.3 m while
+    #: four anchors agree and the fifth is gated for seconds); a too-long run is left alone
+    #: (an anchor behind an obstacle).
+    SHORT_RUN = 5
 
     def __init__(
         self,
@@ -179,10 +191,15 @@ class StreamingFilter:
         self._recent: list[bool] = []
         self._recent_nis: list[float] = []
         self.nis: F64 = np.zeros(0)
+        #: Per range of the last window: measured shorter than predicted.
+        self.short: np.ndarray = np.zeros(0, dtype=bool)
+        self._short_run: Counter[int] = Counter()
         self.nis_max = (
             self.NIS_FACTOR * gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
         )
         self.gate_resets = 0
+        self.repeated = 0
+        self._last_range: dict[int, tuple[int, float]] = {}
         self._streak = 0
         self._last_reset: int | None = None
         self.stale = 0
@@ -293,6 +310,7 @@ class StreamingFilter:
             "ranges_used": {ids[i]: n for i, n in sorted(self.used.items())},
             "ranges_gated": {ids[i]: n for i, n in sorted(self.gated.items())},
             "gate_resets": self.gate_resets,
+            "repeated_ranges": self.repeated,
             "stale_samples": self.stale,
         }
 
@@ -407,9 +425,16 @@ class StreamingFilter:
         nis = self.nis[used] if len(self.nis) == len(used) else self.nis
         self._recent_nis = (self._recent_nis + nis.tolist())[-self.RECENT :]
         full = len(self._recent_nis) == self.RECENT
+        short = self.short if len(self.short) == len(used) else np.zeros(len(used), bool)
+        run = self._short_run
+        for a, ok, s in zip(anchors.tolist(), used.tolist(), short.tolist(), strict=True):
+            if ok:
+                run.pop(a, None)
+            elif s:
+                run[a] += 1
         if self.gating and (sum(self._recent) >= self.GATED_MAX or (
             full and sum(self._recent_nis) > self.nis_max * self.RECENT
-        )):
+        ) or (run and max(run.values()) >= self.SHORT_RUN)):
             assert self.t_cur is not None
             recent = self._last_reset is not None and self.t_cur - self._last_reset < self.STREAK_NS
             self._streak = min(self._streak + 1, self.MAX_STREAK) if recent else 0
@@ -418,6 +443,7 @@ class StreamingFilter:
             self.gate_resets += 1
             self._recent = []
             self._recent_nis = []
+            run.clear()
 
     def _absorb_inputs(self) -> None:
         imu = self._imu_in.take()
@@ -483,6 +509,8 @@ class StreamingFilter:
                 if not in_order:
                     o = np.argsort(rt, kind="stable")
                     rt, ra, rr = rt[o], ra[o], rr[o]
+        if len(rt):
+            rt, ra, rr = self._drop_repeats(rt, ra, rr)
         wt, wv = empty_i, np.zeros(0)
         if self.has_imu and self._wheel_meas is not None and len(self._wheel_meas[0]):
             t, v, w = self._wheel_meas
@@ -499,6 +527,23 @@ class StreamingFilter:
         self._ranges = None
         self._wheel_meas = None
         return rt, ra, rr, wt, wv
+
+    def _drop_repeats(
+        self, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Drop re-published ranges (see `REPEAT_NS`); rt must be sorted."""
+        last = self._last_range
+        keep = np.ones(len(rt), dtype=bool)
+        for i, (t, a, r) in enumerate(zip(rt.tolist(), ra.tolist(), rr.tolist(), strict=True)):
+            prev = last.get(a)
+            if prev is not None and r == prev[1] and t - prev[0] <= REPEAT_NS:
+                keep[i] = False
+            else:
+                last[a] = (t, r)
+        if keep.all():
+            return rt, ra, rr
+        self.repeated += int(np.count_nonzero(~keep))
+        return rt[keep], ra[keep], rr[keep]
 
     def _discard_until(self, t0: int) -> None:
         """Drop process inputs up to the start time t0 (the last IMU sample is held)."""

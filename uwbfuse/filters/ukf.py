@@ -90,15 +90,16 @@ class MerweWeights:
 def _unscented_update(
     wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
     gate_rows: int, gate: float | None,
-) -> tuple[F64, F64, F64, np.ndarray, F64]:
+) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray]:
     """Update from sigma-point states and predicted measurements.
 
     ex (2n+1, n): sigma-point state deviations from the central point; zs (2n+1, m):
     predicted measurements; z (m,) measured; r (m,) variances; p_prior (n,n) the
     predicted covariance (already with Q). The first `gate_rows` rows are gated one by one
     with y^2 / Pzz_ii against `gate`. Returns the correction of the central point (n,), the
-    posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask and the
-    normalised innovations squared of the gated rows.
+    posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
+    normalised innovations squared of the gated rows and which of those measured short
+    (negative innovation).
     """
     ex_mean = wts.wm @ ex
     dz0 = zs - zs[0]
@@ -110,15 +111,16 @@ def _unscented_update(
     y = z - z_mean
     keep = np.ones(len(z), dtype=bool)
     nis = y[:gate_rows] ** 2 / np.diag(pzz)[:gate_rows]
+    short = y[:gate_rows] < 0.0
     if gate is not None and gate_rows:
         keep[:gate_rows] = nis <= gate
     if not np.any(keep):
-        return ex_mean, p_prior, y, keep, nis
+        return ex_mean, p_prior, y, keep, nis, short
     pzz = pzz[np.ix_(keep, keep)]
     pxz = (dx.T * wts.wc) @ dz[:, keep]
     k = np.linalg.solve(pzz, pxz.T).T
     p_new = p_prior - k @ pzz @ k.T
-    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep, nis
+    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep, nis, short
 
 
 class ErrorStateUkf(ErrorStateEkf):
@@ -192,7 +194,7 @@ class ErrorStateUkf(ErrorStateEkf):
         used = np.ones(nr, dtype=bool)
         corr = ex_mean
         if zs:
-            corr, p_prior, self.y, keep, nis = _unscented_update(
+            corr, p_prior, self.y, keep, nis, self.short = _unscented_update(
                 wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
                 p_prior, nr, self.gate1 if self.gating else None,
             )
@@ -261,7 +263,7 @@ class UnicycleUkf(UnicycleEkf):
             dy_ = yb[:, k] + sy * tx + cy * ty - a[:, 1]
             dz_ = self.z0 + tz - a[:, 2]
             zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
-            corr, p_prior, y, used, self.nis = _unscented_update(
+            corr, p_prior, y, used, self.nis, self.short = _unscented_update(
                 wts, ex, zs, rr, np.full(nr, self.sigma_r2), p_prior, nr,
                 self.gate1 if self.gating else None,
             )
