@@ -495,6 +495,7 @@ class GraphEstimator:
                             ) if b.with_bias else np.zeros(len(self.anchors))
             out["batch"] = {"em_rounds": self._batch.rounds,
                             "lm_iterations": self._batch.lm_iterations,
+                            "em_start": "nlos-first" if self._batch.nlos_first else "online",
                             "wall_s": self._batch_wall}
             scale = self._batch.scale
         else:

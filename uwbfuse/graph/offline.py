@@ -52,6 +52,7 @@ class BatchResult:
     rounds: int
     lm_iterations: int
     scale: np.ndarray
+    nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
 
 
 def keyframe_arrays(values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
@@ -279,7 +280,8 @@ def _solve_em(
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
-    return BatchResult(values, g, w, r_los, mix, done, total_it, scale)
+    return BatchResult(values, g, w, r_los, mix, done, total_it, scale,
+                       nlos_first and states is not None)
 
 
 def refit_scale(
