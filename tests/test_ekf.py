@@ -280,7 +280,7 @@ def test_real_isas_walk_handheld_imu_and_uwb(method: Method) -> None:
     assert np.all(np.isfinite(res.trajectory.position))
     # Every ranging epoch is published twice: the copies are dropped, not counted twice.
     assert res.report["repeated_ranges"] > 1500
-    # Measured: 2-D ATE RMSE 0.177 m (EKF), 0.175 m (UKF); 3-D 0.27 m (UWB-only WLS: 0.137
+    # Measured: 2-D ATE RMSE 0.166 m (EKF), 0.165 m (UKF); 3-D 0.24 m (UWB-only WLS: 0.137
     # and 0.225 m; the filters report the IMU, about 0.1 m from the tag the tracker sits by).
     # Before the [ekf] imu_noise_inflation / short-range recovery / moving-start fixes:
     # 0.61 m (EKF) and 0.72 m (UKF), 3-D 1.06 m.

@@ -133,8 +133,10 @@ class StreamingFilter:
     #: persistently short one means the state is off, typically in a false basin of the
     #: range geometry that the other anchors fit (ISAS-Walk1: the height drifts 1.3 m while
     #: four anchors agree and the fifth is gated for seconds); a too-long run is left alone
-    #: (an anchor behind an obstacle).
-    SHORT_RUN = 5
+    #: (an anchor behind an obstacle). Such a recovery starts at streak SHORT_STREAK (4x the
+    #: base steps): one base step does not reach back into the right basin.
+    SHORT_RUN = 3
+    SHORT_STREAK = 1
 
     def __init__(
         self,
@@ -432,12 +434,15 @@ class StreamingFilter:
                 run.pop(a, None)
             elif s:
                 run[a] += 1
-        if self.gating and (sum(self._recent) >= self.GATED_MAX or (
+        off = bool(run) and max(run.values()) >= self.SHORT_RUN
+        if self.gating and (off or sum(self._recent) >= self.GATED_MAX or (
             full and sum(self._recent_nis) > self.nis_max * self.RECENT
-        ) or (run and max(run.values()) >= self.SHORT_RUN)):
+        )):
             assert self.t_cur is not None
             recent = self._last_reset is not None and self.t_cur - self._last_reset < self.STREAK_NS
             self._streak = min(self._streak + 1, self.MAX_STREAK) if recent else 0
+            if off:  # the state is off, not the ranges: open up at least one step more
+                self._streak = max(self._streak, self.SHORT_STREAK)
             self._last_reset = self.t_cur
             self._inflate(4.0**self._streak)
             self.gate_resets += 1
