@@ -11,7 +11,9 @@ form covariance update.
 
 Fixes whose normalised innovation squared exceeds the chi-square quantile
 `ekf.gate_probability` are rejected when `ekf.gating` is on; after `_RESET_S` seconds of
-only rejected fixes the filter restarts at the latest fix (no lock-out).
+only rejected fixes the filter restarts at the latest fix (no lock-out). After `_COAST_S`
+seconds without an accepted fix the velocity is zeroed: through a range outage (Plaza1 has
+97 s without ranges) the track holds its place instead of coasting away.
 
 The state is the tag antenna; the pose written is the base: yaw is the track direction of
 the filtered positions over the last `wls.min_track` metres (held while standing), roll
@@ -36,6 +38,7 @@ from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 _RESET_S = 2.0  # seconds of rejected fixes after which the filter restarts at a fix
 _V0_SIGMA = 1.0  # initial velocity std, m/s
 _R_FLOOR = 0.02  # floor on the fix std in R, m
+_COAST_S = 2.0  # without an accepted fix for this long the velocity is zeroed (hold), s
 
 
 class ConstantVelocityKF:
@@ -137,6 +140,11 @@ class LkfEstimator:
             self.kf.reset(fx.position, self._r(fx))
             self._t_ns = self._last_accept_ns = int(t_ns)
         else:
+            assert self._last_accept_ns is not None
+            if t_ns - self._last_accept_ns > _COAST_S * NS_PER_S:
+                # Ranges gone (outage, shadow): constant velocity would carry the track
+                # away at the last speed for as long as the gap lasts; hold the position.
+                self.kf.x[1::2] = 0.0
             self.kf.predict((t_ns - self._t_ns) / NS_PER_S)
             self._t_ns = int(t_ns)
             if fx is not None:
@@ -148,7 +156,6 @@ class LkfEstimator:
                     self._last_accept_ns = int(t_ns)
                 else:
                     self.n_rejected += 1
-                    assert self._last_accept_ns is not None
                     if t_ns - self._last_accept_ns > _RESET_S * NS_PER_S:
                         self.kf.reset(fx.position, r)
                         self.n_resets += 1

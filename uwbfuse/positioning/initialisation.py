@@ -13,14 +13,18 @@ Steps:
 2. Heading: once the UWB track has moved `min_displacement`, a small robust nonlinear
    least squares (`robust_lm`: Levenberg-Marquardt with soft-L1 IRLS weights) on the raw
    ranges of the motion window solves the start pose: unknowns p0 (base origin, map
-   frame), yaw0, per-anchor range biases, weak height priors, and for an IMU-only track
+   frame), yaw0, per-anchor range biases, for wheeled logs a common range scale (radios
+   that read a few percent long: metres at the Plaza sites' tens of metres), weak height
+   priors, and for an IMU-only track
    the start velocity (unless it starts at rest) and first-order corrections of the
    accelerometer bias, gyro bias and (no still start) level tilt. The
    vehicle's relative track comes from dead reckoning (wheels, with the IMU yaw rate when
    there is one; else IMU strapdown with the standstill bias), so the tag is at
    p0 + Rz(yaw0) (d(t) + R'(t) tag_in_base). Eight yaw seeds avoid local minima; the
-   solution is accepted when the heading std and the residuals are consistent and no
-   other minimum comes close.
+   solution is accepted when the heading std and the residuals are consistent (robust
+   spread within 3 range sigmas or 3 % of the median range, whichever is larger: large
+   sites) and no other minimum comes close. This raw-range solve over the wheel track is
+   what `graph/start.py` does for round-robin ranges, so the graph can use it too.
 3. UWB only: position from the fixes; heading is the UWB track direction once moving
    (or unknown, yaw_sigma = pi, after `heading_timeout` seconds without motion).
 
@@ -72,6 +76,8 @@ _Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_
 _SIGMA_INFLATION = 2.0  # reported / least-squares std of the solved start state
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
+_SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
+_MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 
 
 @dataclass(frozen=True)
@@ -82,7 +88,9 @@ class InitialState:
     R_map_base (3,3) attitude (roll/pitch from gravity, yaw solved); velocity (3,) map
     frame, m/s; gyro_bias (3,) IMU frame, rad/s; accel_bias (3,) IMU frame, m/s^2;
     position_sigma (m) and yaw_sigma (rad) 1-sigma uncertainties (yaw_sigma = pi: heading
-    unknown); still: the log started with a detected standstill.
+    unknown); still: the log started with a detected standstill; range_scale: common
+    scale of the ranges found by the start solve (ranges read range_scale x the distance;
+    1.0 where not solved), for estimators that want to correct radios that read long.
     """
 
     t_ns: int
@@ -94,6 +102,7 @@ class InitialState:
     position_sigma: float
     yaw_sigma: float
     still: bool
+    range_scale: float = 1.0
 
     @property
     def yaw(self) -> float:
@@ -212,6 +221,7 @@ class Initialiser:
         self._r_level: F64 | None = None
         self.attempts = 0
         self.last_reason = "no data"
+        self.range_scale = 1.0  # common range scale of the latest heading solve
 
     # ------------------------------------------------------------------ input
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -635,12 +645,17 @@ class Initialiser:
         n_b = len(anc_ids) if self.estimate_range_bias else 0
         b_sigma = self.config.wls.nlos_std
         n_s = len(trk.sens_sigma)
-        i_v = 4
+        # Common range scale error k (ranges read (1 + k) x the distance): a few percent
+        # of tens of metres is metres on large sites. Wheeled logs only: the wheel track
+        # carries the metric scale; a free 3-D tag would trade it against its height.
+        n_k = 1 if self.planar else 0
+        i_k = 4
+        i_v = 4 + n_k
         i_s = i_v + 3 * solve_v
         i_b = i_s + n_s
         n_unk = i_b + n_b
         n_r = len(rr)
-        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b + 1
+        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b + n_k + 1
         # Weak prior on the start height: the floor for wheeled logs, else below the anchors.
         if self.planar:
             z_prior, z_sigma = self.config.init.base_height, _Z_SIGMA_PLANAR
@@ -661,15 +676,18 @@ class Initialiser:
             dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-6)
             u = diff / dist[:, None]
             b = x[i_b:][anc_col] if n_b else 0.0
+            sc = 1.0 + x[i_k] if n_k else 1.0
             f = np.empty(n_r + n_prior)
             jac = np.zeros((n_r + n_prior, n_unk))
-            f[:n_r] = (dist + b - rr) / sig
-            jac[:n_r, :3] = u / sig
-            jac[:n_r, 3] = np.einsum("ni,ni->n", u, w @ drz.T) / sig
+            f[:n_r] = (sc * dist + b - rr) / sig
+            jac[:n_r, :3] = sc * u / sig
+            jac[:n_r, 3] = sc * np.einsum("ni,ni->n", u, w @ drz.T) / sig
+            if n_k:
+                jac[:n_r, i_k] = dist / sig
             if solve_v:
-                jac[:n_r, i_v:i_v + 3] = u * dtr[:, None] / sig
+                jac[:n_r, i_v:i_v + 3] = sc * u * dtr[:, None] / sig
             if n_s:
-                jac[:n_r, i_s:i_b] = np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
+                jac[:n_r, i_s:i_b] = sc * np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
             if n_b:
                 jac[np.arange(n_r), i_b + anc_col] = 1.0 / sig
             row = n_r
@@ -691,6 +709,10 @@ class Initialiser:
                 f[row:row + n_b] = x[i_b:] / b_sigma
                 jac[row:row + n_b, i_b:] = np.eye(n_b) / b_sigma
                 row += n_b
+            if n_k:
+                f[row] = x[i_k] / _SCALE_SIGMA
+                jac[row, i_k] = 1.0 / _SCALE_SIGMA
+                row += 1
             f[row] = (x[2] - z_prior) / z_sigma
             jac[row, 2] = 1.0 / z_sigma
             return f, jac
@@ -720,6 +742,8 @@ class Initialiser:
         yaw_best = _wrap(best.x[3])
         rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > math.radians(20)]
         dof = max(n_r - n_unk, 1)
+        res = best.fun[:n_r]
+        mad = float(np.median(np.abs(res))) * 1.4826
         scale2 = max(1.0, 2.0 * best.cost / dof)
         try:
             cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
@@ -727,9 +751,10 @@ class Initialiser:
             self.last_reason = "heading solve singular"
             return None
         yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
-        res = best.fun[:n_r]
-        mad = float(np.median(np.abs(res))) * 1.4826
-        inliers = float(np.mean(np.abs(res) < 3.0))
+        # On large sites the range errors grow with the range (multipath, scale): the
+        # allowed spread is the larger of 3 sigma and _MAX_MAD_REL of the median range.
+        lim = max(3.0, _MAX_MAD_REL * float(np.median(rr)) / sig)
+        inliers = float(np.mean(np.abs(res) < lim))
         margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
         x = best.x
         p0, yaw0 = x[:3], float(x[3])
@@ -762,8 +787,10 @@ class Initialiser:
             t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
             gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
             yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still_ok and at_rest,
+            range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
         )
-        consistent = mad <= 3.0 and inliers >= 0.6
+        consistent = mad <= lim and inliers >= 0.6
+        self.range_scale = state.range_scale
         if consistent:
             self._candidate = state
         # After a full window without a determined heading, start anyway with the best
