@@ -201,7 +201,9 @@ class StreamingFilter:
         )
         self.gate_resets = 0
         self.repeated = 0
-        self._last_range: dict[int, tuple[int, float]] = {}
+        n_anchor = len(self.anchor_pos)
+        self._last_t = np.full(n_anchor, np.iinfo(np.int64).min // 2, dtype=np.int64)
+        self._last_r = np.full(n_anchor, np.nan)
         self._streak = 0
         self._last_reset: int | None = None
         self.stale = 0
@@ -429,11 +431,12 @@ class StreamingFilter:
         full = len(self._recent_nis) == self.RECENT
         short = self.short if len(self.short) == len(used) else np.zeros(len(used), bool)
         run = self._short_run
-        for a, ok, s in zip(anchors.tolist(), used.tolist(), short.tolist(), strict=True):
-            if ok:
-                run.pop(a, None)
-            elif s:
-                run[a] += 1
+        if run or not used.all():
+            for a, ok, s in zip(anchors.tolist(), used.tolist(), short.tolist(), strict=True):
+                if ok:
+                    run.pop(a, None)
+                elif s:
+                    run[a] += 1
         off = bool(run) and max(run.values()) >= self.SHORT_RUN
         if self.gating and (off or sum(self._recent) >= self.GATED_MAX or (
             full and sum(self._recent_nis) > self.nis_max * self.RECENT
@@ -537,14 +540,18 @@ class StreamingFilter:
         self, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Drop re-published ranges (see `REPEAT_NS`); rt must be sorted."""
-        last = self._last_range
-        keep = np.ones(len(rt), dtype=bool)
-        for i, (t, a, r) in enumerate(zip(rt.tolist(), ra.tolist(), rr.tolist(), strict=True)):
-            prev = last.get(a)
-            if prev is not None and r == prev[1] and t - prev[0] <= REPEAT_NS:
-                keep[i] = False
-            else:
-                last[a] = (t, r)
+        lt, lr = self._last_t, self._last_r
+        if len(np.unique(ra)) == len(ra):  # the usual case: one range per anchor
+            keep = (rr != lr[ra]) | (rt - lt[ra] > REPEAT_NS)
+            lt[ra[keep]] = rt[keep]
+            lr[ra[keep]] = rr[keep]
+        else:
+            keep = np.ones(len(rt), dtype=bool)
+            for i, (t, a, r) in enumerate(zip(rt.tolist(), ra.tolist(), rr.tolist(), strict=True)):
+                if r == lr[a] and t - lt[a] <= REPEAT_NS:
+                    keep[i] = False
+                else:
+                    lt[a], lr[a] = t, r
         if keep.all():
             return rt, ra, rr
         self.repeated += int(np.count_nonzero(~keep))
