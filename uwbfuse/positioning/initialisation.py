@@ -90,7 +90,9 @@ class InitialState:
     position_sigma (m) and yaw_sigma (rad) 1-sigma uncertainties (yaw_sigma = pi: heading
     unknown); still: the log started with a detected standstill; range_scale: common
     scale of the ranges found by the start solve (ranges read range_scale x the distance;
-    1.0 where not solved), for estimators that want to correct radios that read long.
+    1.0 where not solved), for estimators that want to correct radios that read long;
+    range_sigma: robust spread (MAD) of the start solve's range residuals, m, never below
+    `uwb.sigma` (0 where not solved): the range noise the site actually shows.
     """
 
     t_ns: int
@@ -103,6 +105,7 @@ class InitialState:
     yaw_sigma: float
     still: bool
     range_scale: float = 1.0
+    range_sigma: float = 0.0
 
     @property
     def yaw(self) -> float:
@@ -788,6 +791,7 @@ class Initialiser:
             gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
             yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still_ok and at_rest,
             range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
+            range_sigma=max(mad, 1.0) * sig,
         )
         consistent = mad <= lim and inliers >= 0.6
         self.range_scale = state.range_scale
