@@ -38,6 +38,10 @@ from uwbfuse.streams import AnchorMap, PoseStream
 log = logging.getLogger(__name__)
 
 
+RANGE_SCALE_MIN_ERROR = 0.02
+"""A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
+
+
 class InitialStateLike(Protocol):
     """What the filters read from `uwbfuse.positioning.initialisation.InitialState`."""
 
@@ -50,6 +54,8 @@ class InitialStateLike(Protocol):
     position_sigma: float         # m
     yaw_sigma: float              # rad
     still: bool
+    range_scale: float            # ranges read range_scale x the distance (1 = none)
+    range_sigma: float            # m, spread of the start solve's range residuals
 
 
 class InitialiserLike(Protocol):
@@ -159,6 +165,7 @@ class StreamingFilter:
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.sigma_r2 = config.uwb.sigma**2
+        self._range_scale = 1.0  # common range scale solved by the initialiser (wheeled logs)
         self.gating = config.ekf.gating
         self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
         self.planar = self.has_wheel and config.graph.planar != "off"
@@ -252,6 +259,13 @@ class StreamingFilter:
             self._absorb_inputs()
             self.t_init = int(state.t_ns)
             self._discard_until(self.t_init)
+            # Ranges as the start solve saw them: its common scale (radios that read a few
+            # % long, e.g. Plaza) and at least its residual spread as range noise.
+            # A scale within 2 % of 1 is the solve's noise, not the radios (DW1000 clocks
+            # drift by ppm): applying it would bias long ranges by centimetres.
+            scale = float(state.range_scale)
+            self._range_scale = scale if abs(scale - 1.0) > RANGE_SCALE_MIN_ERROR else 1.0
+            self.sigma_r2 = max(self.sigma_r2, float(state.range_sigma) ** 2)
             self._start(state)
             self.t_cur = self.t_init
         assert self.t_cur is not None
@@ -259,6 +273,8 @@ class StreamingFilter:
         if t_ns <= self.t_cur:
             return
         rt, ra, rr, wt, wv = self._measurements(t_ns)
+        if self._range_scale != 1.0:
+            rr = rr / self._range_scale
         if t_ns - self.t_cur <= MAX_WINDOW_NS:  # one window (the 10 Hz output steps)
             used = self._window(t_ns, rt, ra, rr, wt, wv)
             if len(rt):
