@@ -52,21 +52,6 @@ REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within t
 
 
 @dataclass
-class StartState:
-    """Initial state from the sensors (same fields as positioning's InitialState)."""
-
-    t_ns: int
-    position: np.ndarray
-    R_map_base: np.ndarray
-    velocity: np.ndarray
-    gyro_bias: np.ndarray
-    accel_bias: np.ndarray
-    position_sigma: float
-    yaw_sigma: float
-    still: bool
-
-
-@dataclass
 class Increment:
     """New factors, new values and key timestamps (s since the first keyframe) of one step."""
 

@@ -16,12 +16,12 @@ minimum comes close. Sensors only: no ground truth, no given pose.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from uwbfuse.graph.wheel import WheelTrack, se2_compose
+from uwbfuse.positioning.initialisation import InitialState
 from uwbfuse.streams import AnchorMap
 
 MIN_TRAVEL_M = 2.0  # path length before a heading is attempted, m
@@ -30,21 +30,6 @@ N_SEEDS = 8
 MAX_RMS_M = 0.5  # robust residual scale of an accepted solution, m
 MAX_RMS_REL = 0.03  # ... or this fraction of the median range on large sites
 MIN_COST_RATIO = 2.0  # second-best minimum must be this much worse
-
-
-@dataclass(frozen=True)
-class FallbackState:
-    """Start state in the same form as positioning's InitialState (planar vehicle)."""
-
-    t_ns: int
-    position: np.ndarray
-    R_map_base: np.ndarray
-    velocity: np.ndarray
-    gyro_bias: np.ndarray
-    accel_bias: np.ndarray
-    position_sigma: float
-    yaw_sigma: float
-    still: bool
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -61,7 +46,7 @@ def solve_start(
     tag: np.ndarray,
     base_z: float,
     t_now: int,
-) -> FallbackState | None:
+) -> InitialState | None:
     """The base pose at t_now from the wheel track and the raw ranges, or None."""
     if len(track) < 2 or len(t_r) < MIN_RANGES:
         return None
@@ -112,7 +97,7 @@ def solve_start(
         v_now = float(track.v[-1])
     else:
         v_now = float(track.v[min(np.searchsorted(track.t, t_now), len(track) - 1)])
-    return FallbackState(
+    return InitialState(
         t_ns=int(t_now),
         position=np.array([pose_now[0], pose_now[1], base_z]),
         R_map_base=r_now,
