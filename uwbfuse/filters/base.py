@@ -25,7 +25,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import PoseEstimate
+from uwbfuse.estimator import Method, PoseEstimate
 from uwbfuse.filters.models import (
     F64,
     NS_PER_S,
@@ -598,3 +598,20 @@ class StreamingFilter:
             self._wheel_v = self._wheel_v[self._wheel_i :]
             self._wheel_w = self._wheel_w[self._wheel_i :]
             self._wheel_i = 0
+
+
+def build_filter(
+    method: Method,
+    imu_cls: type[StreamingFilter],
+    planar_cls: type[StreamingFilter],
+    config: Config,
+    anchors: AnchorMap | None,
+    streams: frozenset[str],
+    initialiser: InitialiserLike | None = None,
+) -> StreamingFilter:
+    """The filter variant for the sensor combination: IMU-driven when the log has an IMU,
+    the planar wheel-driven one otherwise. Raises EstimatorError without anchors."""
+    if anchors is None or len(anchors) == 0:
+        raise EstimatorError(f"{method.value} needs an anchor map")
+    cls = imu_cls if "imu" in streams else planar_cls
+    return cls(config, anchors, streams, initialiser)

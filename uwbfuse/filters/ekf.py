@@ -58,7 +58,12 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
-from uwbfuse.filters.base import InitialiserLike, InitialStateLike, StreamingFilter
+from uwbfuse.filters.base import (
+    InitialiserLike,
+    InitialStateLike,
+    StreamingFilter,
+    build_filter,
+)
 from uwbfuse.filters.models import (
     BA,
     BG,
@@ -423,11 +428,9 @@ def make_filter(
     initialiser: InitialiserLike | None = None,
 ) -> ErrorStateEkf | UnicycleEkf:
     """The EKF variant for the sensor combination: IMU-driven when there is an IMU."""
-    if anchors is None or len(anchors) == 0:
-        raise EstimatorError("ekf needs an anchor map")
-    if "imu" in streams:
-        return ErrorStateEkf(config, anchors, streams, initialiser)
-    return UnicycleEkf(config, anchors, streams, initialiser)
+    return build_filter(
+        Method.EKF, ErrorStateEkf, UnicycleEkf, config, anchors, streams, initialiser
+    )
 
 
 def make(

@@ -41,7 +41,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
-from uwbfuse.filters.base import InitialiserLike
+from uwbfuse.filters.base import InitialiserLike, build_filter
 from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
 from uwbfuse.filters.models import (
     BA,
@@ -280,11 +280,9 @@ def make_filter(
     initialiser: InitialiserLike | None = None,
 ) -> ErrorStateUkf | UnicycleUkf:
     """The UKF variant for the sensor combination: IMU-driven when there is an IMU."""
-    if anchors is None or len(anchors) == 0:
-        raise EstimatorError("ukf needs an anchor map")
-    if "imu" in streams:
-        return ErrorStateUkf(config, anchors, streams, initialiser)
-    return UnicycleUkf(config, anchors, streams, initialiser)
+    return build_filter(
+        Method.UKF, ErrorStateUkf, UnicycleUkf, config, anchors, streams, initialiser
+    )
 
 
 def make(
