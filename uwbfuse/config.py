@@ -172,8 +172,10 @@ class GraphConfig(_Section):
     range_bias_anchor_sigma: float = Field(
         0.05, gt=0, description="prior std of each anchor's range bias around the common one, m"
     )
-    estimate_range_scale: bool = Field(
-        False, description="also estimate a per-anchor range scale factor"
+    estimate_range_scale: bool | Literal["auto"] = Field(
+        "auto", description="also estimate a per-anchor range scale factor: auto = from the "
+        "moment the LOS range residuals grow with distance by more than 2 % (radios that read "
+        "long or short, e.g. the Plaza logs' 7 %); true = always, false = never"
     )
     range_scale_sigma: float = Field(
         0.05, gt=0, description="prior std of range scale factors (1 = none)"

@@ -33,13 +33,12 @@ from uwbfuse.filters.models import (
     imu_to_base,
     quat_xyzw_from_matrix,
 )
+from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
 from uwbfuse.streams import AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
 
-RANGE_SCALE_MIN_ERROR = 0.02
-"""A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
 
 
 class InitialStateLike(Protocol):

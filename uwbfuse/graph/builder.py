@@ -38,6 +38,7 @@ from uwbfuse.graph.uwb import (
     range_factor,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
+from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -181,8 +182,19 @@ class GraphBuilder:
         self.records = RangeRecords()
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         self.full_values = gtsam.Values() if record else None
-        self.with_scale = self.g.estimate_range_scale
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
+        self.with_scale = self.g.estimate_range_scale is True
+        start_k = float(getattr(start, "range_scale", 1.0)) - 1.0
+        if self.g.estimate_range_scale == "auto" and abs(start_k) > RANGE_SCALE_MIN_ERROR:
+            # The start solve fits one common scale with the pose; residuals after the
+            # fact cannot show it (the trajectory absorbs a scale error), so `auto` decides
+            # here, as the filters do.
+            self.with_scale = True
+            log.info("the start solve finds ranges %.1f %% %s than the distance: "
+                     "estimating per-anchor range scales", 100 * abs(start_k),
+                     "longer" if start_k > 0 else "shorter")
+        if self.with_scale:
+            self.scale[:] = float(np.clip(start_k, -MAX_SCALE, MAX_SCALE))
         self._sc_num = np.zeros(m)
         self._sc_den = np.zeros(m)
         self._sc_n = np.zeros(m)

@@ -223,7 +223,7 @@ class GraphEstimator:
             self._read_nlos_states(sm, b)
             self._save_leaving(sm, b)
             self._review(sm, b)
-        except RuntimeError as exc:
+        except (RuntimeError, ValueError) as exc:  # GTSAM raises both
             self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
 
@@ -404,7 +404,10 @@ class GraphEstimator:
         if b.with_bias:
             initial.insert(C, float(np.mean(b.range_bias)))
         rec = b.records.arrays()
-        self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
+        # the online pass decided whether range scales are estimated (`auto`)
+        cfg = self.cfg.model_copy(update={"graph": self.cfg.graph.model_copy(
+            update={"estimate_range_scale": b.with_scale})})
+        self._batch = offline.solve(cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale)
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:

@@ -107,4 +107,6 @@ def solve_start(
         position_sigma=max(rms, 0.1),
         yaw_sigma=0.1,
         still=False,
+        range_scale=1.0 + float(best[4]),
+        range_sigma=rms,
     )

@@ -77,6 +77,8 @@ _SIGMA_INFLATION = 2.0  # reported / least-squares std of the solved start state
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
+RANGE_SCALE_MIN_ERROR = 0.02
+"""A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 
 
