@@ -13,7 +13,12 @@ from uwbfuse.config import RobustKernel, WheelConfig
 gtsam = pytest.importorskip("gtsam")
 
 from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
-from uwbfuse.graph.uwb import NlosModel, hmm_filter, hmm_smooth  # noqa: E402
+from uwbfuse.graph.uwb import (  # noqa: E402
+    NlosModel,
+    hmm_filter,
+    hmm_smooth,
+    jump_log_likelihoods,
+)
 from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
 
 NS = 1_000_000_000
@@ -72,6 +77,32 @@ def test_nlos_chain_detects_a_persistent_positive_bias():
     assert np.mean((g_s > 0.5) == truth) > 0.97
     assert np.mean((g_f > 0.5) == truth) > 0.9
     assert np.mean((g_s > 0.5) == truth) >= np.mean((g_f > 0.5) == truth)
+
+
+def test_residual_jumps_classify_where_the_level_cannot():
+    """Test that an NLOS onset and end are found from residual jumps when the pose is off.
+
+    The predicted pose is 0.6 m off along the line of sight (every residual reads 0.6 m
+    short), beyond what either hypothesis explains, so the residual level says nothing;
+    the jumps of the residual between consecutive ranges (+0.3 m at the onset, -0.3 m at
+    the end) do not depend on that offset.
+    """
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    rng = np.random.default_rng(1)
+    excess = np.zeros(150)
+    excess[50:100] = 0.3
+    noise = np.where(excess > 0, 0.07, 0.05)  # the model's fast NLOS and LOS noise
+    r = -0.6 + excess + rng.normal(0.0, 1.0, 150) * noise
+    ll_l, ll_n = m.log_likelihoods(r, r - 0.3, 0.03**2)
+    truth = excess > 0
+    g_level, _, _ = hmm_filter(ll_l, ll_n, m.p_switch, m.p_nlos, 0.0)
+    delta = np.concatenate([[np.nan], np.diff(r)])
+    jumps = jump_log_likelihoods(delta, np.full(150, 0.3), m)
+    g_jump, _, _ = hmm_filter(ll_l, ll_n, m.p_switch, m.p_nlos, 0.0, jumps)
+    assert np.mean((g_jump > 0.5) == truth) > 0.85  # measured 0.91 (level alone 0.67)
+    assert np.mean((g_level > 0.5) == truth) < 0.7  # the level alone misses the NLOS stretch
+    # without a usable previous range (NaN) the jump term is neutral
+    np.testing.assert_array_equal(jump_log_likelihoods(np.array([np.nan]), np.ones(1), m), 0)
 
 
 def test_plaza_converter_reads_the_gtsam_data():

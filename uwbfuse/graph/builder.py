@@ -33,6 +33,7 @@ from uwbfuse.graph.uwb import (
     MIN_WEIGHT,
     NlosModel,
     hmm_filter,
+    jump_log_likelihoods,
     los_bias_key,
     nlos_state_factors,
     range_factor,
@@ -50,6 +51,8 @@ MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
 SCALE_BLOCK = 20  # ranges of an anchor per online scale update
 MAX_SCALE = 0.2  # bound on a range scale error
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
+JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
+JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
 
 
 @dataclass
@@ -201,6 +204,9 @@ class GraphBuilder:
         self.dropped_ranges = 0
         self.repeated_ranges = 0
         self._last_range: dict[int, tuple[int, float]] = {}
+        self.jumps = True  # use residual jumps between consecutive ranges in the HMM
+        self._jump_r = np.zeros(m)  # per anchor: last range residual (m) and its stamp
+        self._jump_t = np.full(m, np.iinfo(np.int64).min // 2, dtype=np.int64)
         self._resid: list[np.ndarray] = []
         self._resp: list[np.ndarray] = []
         self._since_mstep = 0
@@ -455,10 +461,12 @@ class GraphBuilder:
             e_pred, e_var = self._predict_nlos_state(a, seg)
             r_nlos = z - pred - e_pred
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
+            jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
             for anc in np.unique(a):
                 sel = np.flatnonzero(a == anc)
                 g[sel], self.anchor_p[anc], prior[sel] = hmm_filter(
-                    ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc])
+                    ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
+                    None if jump is None else jump[sel])
             self._online_m_step(r_los, r_nlos, g)
         else:
             e_pred = np.zeros(len(t))
@@ -481,6 +489,28 @@ class GraphBuilder:
         rec.g_online.append(g)
         rec.w_online.append(w)
         rec.r_online.append(r_los)
+
+    def _jump_evidence(
+        self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
+    ) -> np.ndarray:
+        """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one.
+
+        The residual change is usable when the previous range of the anchor is at most
+        JUMP_MAX_GAP_NS old; a change beyond JUMP_MAX_M is a gross outlier (the next range
+        is compared with the last one before it).
+        """
+        delta = np.full(len(t), np.nan)
+        for anc in np.unique(a).tolist():
+            sel = np.flatnonzero(a == anc)
+            r_prev, t_prev = self._jump_r[anc], self._jump_t[anc]
+            for j in sel.tolist():  # a few ranges per anchor and keyframe
+                d = r[j] - r_prev
+                if t[j] - t_prev <= JUMP_MAX_GAP_NS and abs(d) < JUMP_MAX_M:
+                    delta[j] = d
+                if not (t[j] - t_prev <= JUMP_MAX_GAP_NS and abs(d) >= JUMP_MAX_M):
+                    r_prev, t_prev = float(r[j]), int(t[j])
+            self._jump_r[anc], self._jump_t[anc] = r_prev, t_prev
+        return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(
         self, inc: Increment, ka: int, a: int, z: float, tag_kf: np.ndarray, seg: int, g: float,

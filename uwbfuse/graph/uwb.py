@@ -17,7 +17,9 @@ native: with responsibility g = P(NLOS | data), the expected negative log-likeli
 sigma_los / sqrt(1-g) plus an NLOS factor with sigma sigma_nlos / sqrt(g) (either dropped
 when its weight is below 1 %). The robust kernel (Huber by default) wraps both and bounds
 gross outliers. NLOS persists, so g comes from a two-state hidden Markov chain per anchor
-(forward filtering online, forward-backward in batch). The M-step re-estimates sigma_los,
+(forward filtering online, forward-backward in batch); online, each transition is also
+weighed by the jump of the anchor's residual since its previous range, which a slowly
+varying pose error does not produce. The M-step re-estimates sigma_los,
 sigma_nlos and the NLOS rate from the data.
 """
 
@@ -102,21 +104,65 @@ class NlosModel:
         self.p_nlos = float(np.clip(p, 0.02, 0.9))
 
 
+def jump_log_likelihoods(
+    delta: np.ndarray, excess: np.ndarray, model: NlosModel
+) -> np.ndarray:
+    """log p(delta | s_prev, s) (N,2,2) of the change of an anchor's range residual between
+    two consecutive ranges (m), for s_prev, s in (LOS, NLOS); NaN delta (no usable previous
+    range) gives zeros.
+
+    Between two ranges a tenth of a second apart the odometry moves the tag accurately, so
+    the change of residual cancels a slowly varying pose error that the residual's level
+    cannot tell from NLOS: staying in a state changes it by noise only, entering NLOS
+    raises it by the anchor's NLOS excess (`excess`, m) and leaving NLOS lowers it by as
+    much. Gross outliers are floored as in `log_likelihoods`.
+    """
+    s_l, s_n = model.sigma_los, model.sigma_nlos
+    s_stay_l = math.sqrt(2.0) * s_l
+    s_stay_n = math.sqrt(2.0) * s_n
+    s_jump = math.sqrt(model.sigma_slow**2 + s_n**2 + s_l**2)
+    d = np.nan_to_num(delta)
+    m = np.maximum(excess, 0.1)
+
+    def ll(x: np.ndarray, s: float) -> np.ndarray:
+        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, _LOG_OUTLIER)
+
+    out = np.empty((len(d), 2, 2))
+    out[:, 0, 0] = ll(d, s_stay_l)
+    out[:, 0, 1] = ll(d - m, s_jump)
+    out[:, 1, 0] = ll(d + m, s_jump)
+    out[:, 1, 1] = ll(d, s_stay_n)
+    out[np.isnan(delta)] = 0.0
+    return out
+
+
 def hmm_filter(
-    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
+    jump_ll: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """Forward pass of one anchor's LOS/NLOS chain over its time-ordered ranges.
 
-    Returns P(NLOS) per range, the last value and the predicted prior of each range. Each
-    step keeps the state with probability 1 - p_switch and otherwise redraws it with the
-    stationary rate p_nlos.
+    Returns P(NLOS) per range, the last value and the predicted prior of each range (with
+    the jump evidence, before the range's own level likelihood). Each step keeps the state
+    with probability 1 - p_switch and otherwise redraws it with the stationary rate
+    p_nlos; `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs each transition by the
+    change of residual it implies.
     """
     out = np.empty(len(ll_los))
     priors = np.empty(len(ll_los))
     p = p0
     d = np.clip(ll_nlos - ll_los, -50.0, 50.0)
+    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
+    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
+    jl = None if jump_ll is None else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
     for i in range(len(d)):
-        prior = (1.0 - p_switch) * p + p_switch * p_nlos
+        if jl is None:
+            prior = (1.0 - p_switch) * p + p_switch * p_nlos
+        else:
+            j = jl[i]
+            to_n = (1.0 - p) * t_ln * j[0, 1] + p * (1.0 - t_nl) * j[1, 1]
+            to_l = (1.0 - p) * (1.0 - t_ln) * j[0, 0] + p * t_nl * j[1, 0]
+            prior = to_n / max(to_n + to_l, 1e-300)
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
         priors[i] = prior
         lo = math.log(prior / (1.0 - prior)) + d[i]
