@@ -30,6 +30,8 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.uwb import (
+    JUMP_MAX_GAP_NS,
+    JUMP_MAX_M,
     MIN_WEIGHT,
     NlosModel,
     hmm_filter,
@@ -51,8 +53,6 @@ MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
 SCALE_BLOCK = 20  # ranges of an anchor per online scale update
 MAX_SCALE = 0.2  # bound on a range scale error
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
-JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
-JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
 
 
 @dataclass
@@ -65,6 +65,8 @@ class Increment:
     # range factors to review later: (review batch, positions of each range's factors)
     reviews: list[tuple[ReviewBatch, list[list[int]]]] = field(default_factory=list)
     remove: list[int] = field(default_factory=list)  # smoother factor indices to remove
+    # reviewed ranges whose factors were replaced: (batch, range, positions of new factors)
+    replaced: list[tuple[ReviewBatch, int, list[int]]] = field(default_factory=list)
 
     def merge(self, other: Increment) -> None:
         """Append `other` (factor positions of its reviews shift by this graph's size)."""
@@ -75,11 +77,13 @@ class Increment:
         self.remove.extend(other.remove)
         for batch, slots in other.reviews:
             self.reviews.append((batch, [[p + off for p in ps] for ps in slots]))
+        for batch, j, ps in other.replaced:
+            self.replaced.append((batch, j, [p + off for p in ps]))
 
 
 @dataclass
 class ReviewBatch:
-    """Ranges of one keyframe interval, kept for one delayed re-classification."""
+    """Ranges of one keyframe interval, re-classified while they are in the lag window."""
 
     ka: int  # keyframe the ranges are attached to
     anchor: np.ndarray
@@ -89,6 +93,7 @@ class ReviewBatch:
     prior: np.ndarray  # HMM prior P(NLOS) at insertion
     g: np.ndarray  # responsibility used for the factors
     record: int  # index of the batch in RangeRecords
+    t_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # range stamps
     factors: list[list[int]] = field(default_factory=list)  # smoother indices per range
 
 
@@ -480,7 +485,7 @@ class GraphBuilder:
         rec = self.records
         if self.nlos and self.review:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
-                                            len(rec.k)), slots))
+                                            len(rec.k), t_ns=t), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
         rec.z.append(z_raw)

@@ -8,9 +8,10 @@ seconds), `estimate()` is None. From then on each `step(t)` builds every keyfram
 <= t (`GraphBuilder`) and feeds them to a fixed-lag iSAM2 (`OnlineSmoother`) every
 `graph.update_every` keyframes; `estimate()` is the newest keyframe (solved or predicted
 from the last solved one by wheels/IMU) composed with the motion up to t: causal.
-A second after insertion each range's LOS/NLOS responsibility is recomputed against the
-smoothed keyframe; ranges that changed class get their factors replaced (iSAM2 factor
-removal), a fixed-lag EM step.
+After every update the LOS/NLOS responsibilities of the ranges in the lag window are
+recomputed against the smoothed keyframes (forward-backward per anchor over the window);
+ranges that changed class get their factors replaced (iSAM2 factor removal), a fixed-lag
+EM step.
 
 `finish()`:
 - isam2: None (the causal estimates are the output).
@@ -49,14 +50,15 @@ from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.start import solve_start
-from uwbfuse.graph.uwb import posterior
+from uwbfuse.graph.uwb import hmm_smooth, jump_log_likelihoods, residual_jumps
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
 BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
-REVIEW_DELAY_S = 1.0  # age (s) at which a range's LOS/NLOS responsibility is revisited
+REVIEW_MIN_AGE_S = 0.5  # ranges younger than this keep their insertion classification
+REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no longer reviewed
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
 FALLBACK_RETRY_S = 1.0  # s of data between two fallback attempts
@@ -213,6 +215,8 @@ class GraphEstimator:
             for batch, slots in inc.reviews:
                 batch.factors = [[idx[p] for p in ps] for ps in slots]
                 self._reviews.append(batch)
+            for batch, j, ps in inc.replaced:
+                batch.factors[j] = [idx[p] for p in ps]
             k = b.k
             b.pose = sm.pose(k)
             if b.has_imu:
@@ -228,35 +232,66 @@ class GraphEstimator:
         self._update_latency.append(time.perf_counter() - tic)
 
     def _review(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
-        """Re-classify ranges REVIEW_DELAY_S old with the smoothed estimate (fixed-lag EM).
+        """Re-classify the ranges in the lag window with the smoothed estimate (fixed-lag EM).
 
-        At insertion a range is classified against a one-step prediction; a second
-        later its keyframe has been smoothed by the ranges that followed. Ranges whose
+        At insertion a range is classified by the forward filter against a one-step
+        prediction. After each update, every range at least REVIEW_MIN_AGE_S old and still
+        REVIEW_MARGIN_S inside the lag window is classified again: residuals at the
+        smoothed keyframes and NLOS states, then forward-backward per anchor over the
+        window (from the forward prior of its first range, with the residual jumps), so
+        the ranges that followed a range weigh in as they do in batch. Ranges whose
         responsibility moved by more than REVIEW_CHANGE get their factors replaced in the
-        next update (iSAM2 factor removal); each range is reviewed once.
+        next update (iSAM2 factor removal).
         """
-        horizon = b.time_of(b.k) - round(REVIEW_DELAY_S * NS_PER_S)
+        now = b.time_of(b.k)
+        oldest = now - round((self.cfg.graph.lag - REVIEW_MARGIN_S) * NS_PER_S)
+        while self._reviews and b.time_of(self._reviews[0].ka) < oldest:
+            self._reviews.popleft()
+        horizon = now - round(REVIEW_MIN_AGE_S * NS_PER_S)
+        poses: dict[int, np.ndarray] = {}
+        batches = []
+        for rb in self._reviews:
+            if b.time_of(rb.ka) > horizon:
+                break
+            if rb.ka not in poses:
+                try:
+                    poses[rb.ka] = sm.pose(rb.ka).matrix()
+                except (RuntimeError, IndexError):
+                    continue
+            batches.append(rb)
+        if not batches:
+            return
         mix = b.mixture
-        while self._reviews and b.time_of(self._reviews[0].ka) <= horizon:
-            rb = self._reviews.popleft()
-            try:
-                pose = sm.pose(rb.ka)
-            except (RuntimeError, IndexError):
-                continue
-            p = np.array([pose.transformFrom(t) for t in rb.tag_kf])
-            h = np.linalg.norm(p - self.anchors.positions[rb.anchor], axis=1)
-            d = b.range_bias[rb.anchor] if b.with_bias else np.zeros(len(h))
-            e = d + mix.mu_nlos
-            for j, (a, s) in enumerate(zip(rb.anchor.tolist(), rb.seg.tolist(), strict=True)):
-                if (a, s) in b.e_created:
-                    try:
-                        e[j] = sm.double(nlos_key(a, s))
-                    except (RuntimeError, IndexError):
-                        pass
-            r_los = rb.z - h - d
-            ll_l, ll_n = mix.log_likelihoods(r_los, rb.z - h - e, 0.03**2)
-            g = posterior(rb.prior, ll_l, ll_n)
-            changed = np.flatnonzero(np.abs(g - rb.g) > REVIEW_CHANGE)
+        anchor = np.concatenate([rb.anchor for rb in batches])
+        z = np.concatenate([rb.z for rb in batches])
+        seg = np.concatenate([rb.seg for rb in batches])
+        t = np.concatenate([rb.t_ns for rb in batches])
+        prior = np.concatenate([rb.prior for rb in batches])
+        p = np.concatenate([rb.tag_kf @ poses[rb.ka][:3, :3].T + poses[rb.ka][:3, 3]
+                            for rb in batches])
+        h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
+        d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
+        e = d + mix.mu_nlos
+        for a, sg in set(zip(anchor.tolist(), seg.tolist(), strict=True)):
+            if (a, sg) in b.e_created:
+                try:
+                    e[(anchor == a) & (seg == sg)] = sm.double(nlos_key(a, sg))
+                except (RuntimeError, IndexError):
+                    pass
+        r_los = z - h - d
+        ll_l, ll_n = mix.log_likelihoods(r_los, z - h - e, 0.03**2)
+        g = np.empty(len(z))
+        for a in np.unique(anchor).tolist():
+            sel = np.flatnonzero(anchor == a)
+            jl = jump_log_likelihoods(residual_jumps(t[sel], r_los[sel]), e[sel] - d[sel], mix)
+            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl,
+                                float(prior[sel[0]]))
+        off = 0
+        for rb in batches:
+            n = len(rb.z)
+            gb, eb = g[off:off + n], e[off:off + n]
+            off += n
+            changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if len(changed) == 0:
                 continue
             if self._review_inc is None:
@@ -264,9 +299,11 @@ class GraphEstimator:
             inc = self._review_inc
             for j in changed.tolist():
                 inc.remove.extend(rb.factors[j])
-                b.range_factors(inc, rb.ka, int(rb.anchor[j]), float(rb.z[j]), rb.tag_kf[j],
-                                int(rb.seg[j]), float(g[j]), float(e[j]))
-            b.records.g_online[rb.record][changed] = g[changed]
+                pos = b.range_factors(inc, rb.ka, int(rb.anchor[j]), float(rb.z[j]),
+                                      rb.tag_kf[j], int(rb.seg[j]), float(gb[j]), float(eb[j]))
+                inc.replaced.append((rb, j, pos))
+                rb.g[j] = gb[j]
+            b.records.g_online[rb.record][changed] = gb[changed]
             self._n_reviewed += len(changed)
 
     def _read_nlos_states(self, sm: OnlineSmoother, b: GraphBuilder) -> None:

@@ -39,6 +39,8 @@ _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 SIGMA_LOS_MIN = 0.02
 SIGMA_NLOS_MIN = 0.03
 MIN_WEIGHT = 0.01  # component weights below this add no factor
+JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
+JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
 # gross-outlier floor of each component's likelihood: 2 % spread over 20 m
 _LOG_OUTLIER = math.log(0.02 / 20.0)
 
@@ -136,6 +138,16 @@ def jump_log_likelihoods(
     return out
 
 
+def residual_jumps(t_ns: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Change of residual (m) from each range to the next of the same anchor (time-ordered,
+    one anchor); NaN where the previous range is over JUMP_MAX_GAP_NS old or the change is
+    beyond JUMP_MAX_M (a gross outlier)."""
+    d = np.concatenate([[np.nan], np.diff(r)])
+    gap = np.concatenate([[np.iinfo(np.int64).max], np.diff(t_ns)])
+    d[(gap > JUMP_MAX_GAP_NS) | ~(np.abs(d) < JUMP_MAX_M)] = np.nan
+    return d
+
+
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
     jump_ll: np.ndarray | None = None,
@@ -178,9 +190,14 @@ def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.
 
 
 def hmm_smooth(
-    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float,
+    jump_ll: np.ndarray | None = None, p0: float | None = None,
 ) -> np.ndarray:
-    """Forward-backward P(NLOS) per range of one anchor (time-ordered)."""
+    """Forward-backward P(NLOS) per range of one anchor (time-ordered).
+
+    `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs the transition into each range;
+    `p0` is P(NLOS) of the first range before its own evidence (default: p_nlos).
+    """
     n = len(ll_los)
     if n == 0:
         return np.zeros(0)
@@ -188,15 +205,22 @@ def hmm_smooth(
                   [p_switch * (1.0 - p_nlos), 1.0 - p_switch * (1.0 - p_nlos)]])
     m = np.maximum(ll_los, ll_nlos)
     e = np.stack([np.exp(ll_los - m), np.exp(ll_nlos - m)], axis=1)
+    # per-step transition matrices: `a`, each entry scaled by the jump evidence if any
+    if jump_ll is None:
+        tr = np.broadcast_to(a, (n, 2, 2))
+    else:
+        tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    t00, t01 = tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist()
+    t10, t11 = tr[:, 1, 0].tolist(), tr[:, 1, 1].tolist()
     alpha = np.empty((n, 2))
-    cur = np.array([1.0 - p_nlos, p_nlos]) * e[0]
+    q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
+    cur = np.array([1.0 - q0, q0]) * e[0]
     alpha[0] = cur / cur.sum()
-    a00, a01, a10, a11 = a[0, 0], a[0, 1], a[1, 0], a[1, 1]
     e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
     x0, x1 = float(alpha[0, 0]), float(alpha[0, 1])
     for i in range(1, n):
-        y0 = (x0 * a00 + x1 * a10) * e0[i]
-        y1 = (x0 * a01 + x1 * a11) * e1[i]
+        y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
+        y1 = (x0 * t01[i] + x1 * t11[i]) * e1[i]
         s = max(y0 + y1, 1e-300)
         x0, x1 = y0 / s, y1 / s
         alpha[i, 0], alpha[i, 1] = x0, x1
@@ -205,7 +229,8 @@ def hmm_smooth(
     b0, b1 = 1.0, 1.0
     for i in range(n - 2, -1, -1):
         c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
-        nb0, nb1 = a00 * c0 + a01 * c1, a10 * c0 + a11 * c1
+        j = i + 1
+        nb0, nb1 = t00[j] * c0 + t01[j] * c1, t10[j] * c0 + t11[j] * c1
         s = max(nb0 + nb1, 1e-300)
         b0, b1 = nb0 / s, nb1 / s
         g0, g1 = alpha[i, 0] * b0, alpha[i, 1] * b1
