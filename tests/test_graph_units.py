@@ -18,6 +18,7 @@ from uwbfuse.graph.uwb import (  # noqa: E402
     hmm_filter,
     hmm_smooth,
     jump_log_likelihoods,
+    los_subset_search,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
 
@@ -103,6 +104,36 @@ def test_residual_jumps_classify_where_the_level_cannot():
     assert np.mean((g_level > 0.5) == truth) < 0.7  # the level alone misses the NLOS stretch
     # without a usable previous range (NaN) the jump term is neutral
     np.testing.assert_array_equal(jump_log_likelihoods(np.array([np.nan]), np.ones(1), m), 0)
+
+
+def test_los_subset_search_finds_the_los_anchors_and_the_track_offset():
+    """Test the discrete LOS/NLOS search: 4 anchors, 0 and 1 in LOS, 2 and 3 reading 0.3 m
+    long; the track is 0.18 m off and only anchor 0 is currently taken as LOS."""
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    rng = np.random.default_rng(0)
+    anchors = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 10.0], [0.0, 10.0]])
+    n = 200
+    t = np.linspace(0.0, 4.5, n)
+    p_true = np.column_stack([5.0 + 0.5 * t, np.full(n, 5.0)])
+    a = np.arange(n) % 4
+    excess = np.where(a >= 2, 0.3 + rng.normal(0, 0.07, n), rng.normal(0, 0.05, n))
+    shift = np.array([0.15, -0.1])
+    p_est = p_true + shift
+    z = np.linalg.norm(p_true - anchors[a], axis=1) + excess
+    dist = np.linalg.norm(p_est - anchors[a], axis=1)
+    u = (p_est - anchors[a]) / dist[:, None]
+    hyp = los_subset_search(a, z - dist, u, np.where(a == 0, 0.0, 1.0), m)
+    assert hyp is not None
+    np.testing.assert_array_equal(hyp.los, [True, True, False, False])
+    np.testing.assert_array_equal(hyp.current, [True, False, False, False])
+    np.testing.assert_allclose(hyp.delta, -shift, atol=0.03)
+    np.testing.assert_allclose(hyp.excess[2:], 0.3, atol=0.03)
+    assert hyp.gain > 10.0
+    # with the track right and the classification right, nothing is better
+    dist = np.linalg.norm(p_true - anchors[a], axis=1)
+    u = (p_true - anchors[a]) / dist[:, None]
+    hyp = los_subset_search(a, z - dist, u, np.where(a >= 2, 1.0, 0.0), m)
+    assert hyp is not None and hyp.gain < 1.0
 
 
 def test_plaza_converter_reads_the_gtsam_data():

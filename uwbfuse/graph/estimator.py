@@ -50,7 +50,12 @@ from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.start import solve_start
-from uwbfuse.graph.uwb import hmm_smooth, jump_log_likelihoods, residual_jumps
+from uwbfuse.graph.uwb import (
+    hmm_smooth,
+    jump_log_likelihoods,
+    los_subset_search,
+    residual_jumps,
+)
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
@@ -58,6 +63,9 @@ log = logging.getLogger(__name__)
 
 BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
 REVIEW_MIN_AGE_S = 0.5  # ranges younger than this keep their insertion classification
+SEARCH = True  # discrete LOS/NLOS hypothesis search in the review (see `_review`)
+SEARCH_SWITCH_NATS = 10.0  # log-likelihood gain of a better LOS/NLOS assignment
+SEARCH_PERSIST = 3  # ... in this many consecutive reviews before it is adopted
 REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no longer reviewed
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
@@ -107,6 +115,9 @@ class GraphEstimator:
         self._reviews: deque[ReviewBatch] = deque()
         self._review_inc: Increment | None = None
         self._n_reviewed = 0
+        self._n_switches = 0
+        self._hyp_key: tuple | None = None
+        self._hyp_count = 0
         self._fallback_t: int | None = None
         self._fallback_used = False
         self._batch_wall = 0.0
@@ -242,6 +253,12 @@ class GraphEstimator:
         the ranges that followed a range weigh in as they do in batch. Ranges whose
         responsibility moved by more than REVIEW_CHANGE get their factors replaced in the
         next update (iSAM2 factor removal).
+
+        Before that, `uwb.los_subset_search` tests every LOS/NLOS assignment of the
+        window's anchors with a rigid shift of the window's track: when another assignment
+        beats the current one by SEARCH_SWITCH_NATS in SEARCH_PERSIST consecutive reviews,
+        the window is classified against the shifted track and its NLOS excesses instead
+        (an escape from the local optimum that EM alone stays in).
         """
         now = b.time_of(b.k)
         oldest = now - round((self.cfg.graph.lag - REVIEW_MARGIN_S) * NS_PER_S)
@@ -279,7 +296,24 @@ class GraphEstimator:
                 except (RuntimeError, IndexError):
                     pass
         r_los = z - h - d
-        ll_l, ll_n = mix.log_likelihoods(r_los, z - h - e, 0.03**2)
+        r_nlos = z - h - e
+        if SEARCH:
+            g_cur = np.concatenate([rb.g for rb in batches])
+            u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
+            hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+            better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
+                      and bool(np.any(hyp.los != hyp.current)))
+            key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
+            self._hyp_count = self._hyp_count + 1 if better and key == self._hyp_key else 1
+            self._hyp_key = key
+            if better and self._hyp_count >= SEARCH_PERSIST:
+                # classify against the better hypothesis' track and NLOS excesses
+                self._n_switches += 1
+                r_los = r_los - u @ hyp.delta
+                exc = np.full(len(b.range_bias), mix.mu_nlos)
+                exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
+                r_nlos = r_los - exc[anchor]
+        ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         g = np.empty(len(z))
         for a in np.unique(anchor).tolist():
             sel = np.flatnonzero(anchor == a)
@@ -527,6 +561,7 @@ class GraphEstimator:
             }
         out["reanchor_events"] = list(self._reanchors)
         out["ranges_reclassified_online"] = self._n_reviewed
+        out["los_hypothesis_switches"] = self._n_switches
         rec = b.records.arrays()
         if self._batch is not None:
             g, w = self._batch.nlos_prob, self._batch.weight

@@ -39,6 +39,9 @@ _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 SIGMA_LOS_MIN = 0.02
 SIGMA_NLOS_MIN = 0.03
 MIN_WEIGHT = 0.01  # component weights below this add no factor
+SEARCH_SHIFT_SIGMA = 0.5  # m: prior std of the track shift in `los_subset_search`
+EXCESS_FLOOR = -0.2  # m: least NLOS excess a `los_subset_search` hypothesis may need
+SEARCH_MAX_ANCHORS = 10  # `los_subset_search` solves 2^M subsets: no more anchors than this
 JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
 JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
 # gross-outlier floor of each component's likelihood: 2 % spread over 20 m
@@ -284,3 +287,87 @@ def nlos_state_factors(
     if prev_key is not None:
         graph.add(gtsam.BetweenFactorDouble(
             prev_key, key, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, model.chain_sigma)))
+
+
+@dataclass
+class LosHypothesis:
+    """Outcome of `los_subset_search` over the anchors seen in a window."""
+
+    anchors: np.ndarray  # anchor indices considered (M,)
+    los: np.ndarray  # best hypothesis: anchor in LOS (M,) bool
+    current: np.ndarray  # the current classification (M,) bool
+    delta: np.ndarray  # horizontal shift (2,) of the window's track, m, under `los`
+    excess: np.ndarray  # NLOS excess (M,) per anchor under `los` (0 where LOS), m
+    gain: float  # negative log-likelihood of `current` minus that of `los` (>= 0)
+
+
+def los_subset_search(
+    anchor: np.ndarray, r: np.ndarray, u: np.ndarray, g: np.ndarray, model: NlosModel,
+    sigma_shift: float = SEARCH_SHIFT_SIGMA, max_anchors: int = SEARCH_MAX_ANCHORS,
+) -> LosHypothesis | None:
+    """Which anchors are in LOS over a short window, searched over every LOS/NLOS subset.
+
+    Fixed-lag EM refines the responsibilities continuously from the current track and can
+    settle where a track pulled by NLOS ranges makes some LOS anchors read long (they then
+    fit as small NLOS excesses). This tests the discrete alternatives: for each subset S of
+    the anchors taken as LOS for the whole window, the window's track may shift rigidly by
+    delta (horizontal, prior std `sigma_shift`); LOS anchors have residuals N(0, sigma_los),
+    an NLOS anchor a constant excess m_a ~ N(mu_nlos, sigma_slow) plus N(0, sigma_nlos).
+    Everything is quadratic in (delta, m), so each subset's best negative log-likelihood is
+    closed-form (m eliminated by a Schur complement) and all 2^M subsets are solved at once.
+    A subset whose best fit needs a clearly negative excess for one of its NLOS anchors is
+    ruled out (NLOS only lengthens ranges).
+
+    anchor (N,) anchor index, r (N,) range residual z - h - D (m) at the current track,
+    u (N,2) horizontal unit vector from the anchor to the tag (d range / d tag position),
+    g (N,) current P(NLOS). Ranges with |r| > 1 m are left out as gross outliers. Returns
+    None when there are more than `max_anchors` anchors (2^M subsets) or too few ranges.
+    """
+    ok = np.abs(r) < 1.0
+    anchor, r, u, g = anchor[ok], r[ok], u[ok], g[ok]
+    ids, inv = np.unique(anchor, return_inverse=True)
+    m = len(ids)
+    if m == 0 or m > max_anchors or len(r) < 3 * m:
+        return None
+    n = np.bincount(inv, minlength=m).astype(float)
+    suu = np.zeros((m, 2, 2))
+    np.add.at(suu, inv, u[:, :, None] * u[:, None, :])
+    su = np.zeros((m, 2))
+    np.add.at(su, inv, u)
+    sur = np.zeros((m, 2))
+    np.add.at(sur, inv, u * r[:, None])
+    sr = np.bincount(inv, weights=r, minlength=m)
+    srr = np.bincount(inv, weights=r * r, minlength=m)
+    p = min(max(model.p_nlos, 0.02), 0.98)
+    # LOS: 1/2 d'A d - b'd + c per anchor
+    wl = 1.0 / model.sigma_los**2
+    a_l, b_l = wl * suu, wl * sur
+    c_l = 0.5 * wl * srr + n * math.log(model.sigma_los) - math.log(1.0 - p)
+    # NLOS with its excess m_a eliminated; its fast noise adds to the LOS noise (else an
+    # unadapted, loose sigma_los would make NLOS the tighter fit for any anchor)
+    s_n = math.hypot(model.sigma_los, model.sigma_nlos)
+    wn, k, mu = 1.0 / s_n**2, 1.0 / model.sigma_slow**2, model.mu_nlos
+    hmm_ = wn * n + k
+    gm = wn * sr + k * mu
+    a_n = wn * suu - (wn * su)[:, :, None] * (wn * su)[:, None, :] / hmm_[:, None, None]
+    b_n = wn * sur - (wn * su) * (gm / hmm_)[:, None]
+    c_n = (0.5 * wn * srr + 0.5 * k * mu * mu - 0.5 * gm * gm / hmm_ + 0.5 * np.log(hmm_)
+           + n * math.log(s_n) + math.log(model.sigma_slow) - math.log(p))
+    subsets = ((np.arange(2**m)[:, None] >> np.arange(m)[None, :]) & 1).astype(bool)  # LOS
+    sel = subsets[:, :, None, None]
+    a_tot = np.where(sel, a_l, a_n).sum(axis=1) + np.eye(2) / sigma_shift**2
+    b_tot = np.where(subsets[:, :, None], b_l, b_n).sum(axis=1)
+    c_tot = np.where(subsets, c_l, c_n).sum(axis=1)
+    delta = np.linalg.solve(a_tot, b_tot[:, :, None])[:, :, 0]
+    cost = c_tot - 0.5 * np.einsum("si,si->s", b_tot, delta)
+    # NLOS only lengthens ranges: a subset that needs a clearly negative excess (beyond
+    # EXCESS_FLOOR, room for LOS biases that have absorbed some NLOS) is not a hypothesis
+    ex_all = (gm[None, :] - wn * np.einsum("mi,si->sm", su, delta)) / hmm_[None, :]
+    invalid = np.any(~subsets & (ex_all < EXCESS_FLOOR), axis=1)
+    cur_w = np.bincount(inv, weights=g, minlength=m) / n
+    current = cur_w < 0.5
+    i_cur = int(np.sum(current.astype(int) << np.arange(m)))
+    best = int(np.argmin(np.where(invalid, np.inf, cost)))
+    los = subsets[best]
+    return LosHypothesis(ids, los, current, delta[best], np.where(los, 0.0, ex_all[best]),
+                         float(cost[i_cur] - cost[best]))
