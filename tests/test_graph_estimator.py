@@ -168,8 +168,12 @@ def test_isam2_is_causal():
     np.testing.assert_allclose(a.position[:n], b.position[:n], atol=1e-9)
 
 
-def test_gtsam_failure_reanchors_with_a_warning(factory, monkeypatch, caplog):
-    """Test that an iSAM2 failure mid-run re-anchors the graph instead of crashing."""
+@pytest.mark.parametrize(("method", "exc"), [(Method.ISAM2, RuntimeError),
+                                             (Method.ISAM2_SMOOTHED, ValueError)])
+def test_gtsam_failure_reanchors_with_a_warning(factory, monkeypatch, caplog, method, exc):
+    """Test that an iSAM2 failure mid-run re-anchors the graph instead of crashing, and
+    that the smoothed output keeps the lag window's keyframes (GTSAM raises RuntimeError
+    or ValueError, e.g. 'Asking to remove variables ... that are not unused')."""
     from uwbfuse.graph import online
 
     orig = online.OnlineSmoother.update
@@ -178,15 +182,17 @@ def test_gtsam_failure_reanchors_with_a_warning(factory, monkeypatch, caplog):
     def flaky(self, inc):
         calls["n"] += 1
         if calls["n"] == 50:
-            raise RuntimeError("Indeterminant linear system detected (injected)")
+            raise exc("Indeterminant linear system detected (injected)")
         return orig(self, inc)
 
     monkeypatch.setattr(online.OnlineSmoother, "update", flaky)
     with caplog.at_level(logging.WARNING, logger="uwbfuse.graph.estimator"):
-        res = estimate(factory.log, Method.ISAM2, Config())
+        res = estimate(factory.log, method, Config())
     assert len(res.report["reanchor_events"]) == 1
     assert "re-anchoring" in caplog.text
-    assert _ate(res.trajectory, factory.log) < 0.3
+    # measured 0.150 (isam2) and 0.116 (smoothed; 0.58 when the window was lost), the
+    # same as without the failure
+    assert _ate(res.trajectory, factory.log) < 0.2
 
 
 def test_report_has_outliers_and_biases(factory):

@@ -108,6 +108,8 @@ class GraphEstimator:
         self._kf_vel: dict[int, np.ndarray] = {}
         self._kf_bias: dict[int, gtsam.imuBias.ConstantBias] = {}
         self._saved_upto = 0
+        self._kf_pred: dict[int, gtsam.Pose3] = {}  # keyframe poses as first predicted
+        self._pred_upto = 0
         self._reanchors: list[dict[str, Any]] = []
         self._update_latency: list[float] = []
         self._init_t: int | None = None
@@ -220,6 +222,10 @@ class GraphEstimator:
         b, sm = self.builder, self.smoother
         assert b is not None and sm is not None
         inc = self._merge_pending()
+        for kk in range(self._pred_upto, b.k + 1):  # keyframes as predicted when built
+            if inc.values.exists(X(kk)):
+                self._kf_pred[kk] = inc.values.atPose3(X(kk))
+        self._pred_upto = b.k + 1
         tic = time.perf_counter()
         try:
             idx = sm.update(inc)
@@ -365,7 +371,7 @@ class GraphEstimator:
             if b.has_imu:
                 self._kf_vel[k] = sm.velocity(k)
                 self._kf_bias[k] = sm.bias(k)
-        except (RuntimeError, IndexError):
+        except (RuntimeError, IndexError, ValueError):
             pass  # not in this smoother (re-anchored): keep the earlier estimate if any
 
     def _reanchor(self, reason: str) -> None:
@@ -376,8 +382,14 @@ class GraphEstimator:
         log.warning("iSAM2 update failed at keyframe %d (%s): re-anchoring the graph",
                     k, reason.splitlines()[0] if reason else "error")
         self._reanchors.append({"keyframe": k, "t_ns": b.time_of(k), "reason": reason[:200]})
+        # keep the window's keyframes: as the failed smoother last had them where it can
+        # still tell, else as predicted when they were built
+        old = self.smoother
         for kk in range(self._saved_upto, k + 1):
-            self._kf_pose.setdefault(kk, b.pose if kk == k else self._kf_pose.get(kk, b.pose))
+            if old is not None:
+                self._save_kf(old, b, kk)
+            if kk not in self._kf_pose and kk in self._kf_pred:
+                self._kf_pose[kk] = self._kf_pred[kk]
         self._saved_upto = k + 1
         b.e_seg[:] = -1
         b.e_created.clear()
