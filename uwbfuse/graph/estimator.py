@@ -252,10 +252,11 @@ class GraphEstimator:
         """Re-classify the ranges in the lag window with the smoothed estimate (fixed-lag EM).
 
         At insertion a range is classified by the forward filter against a one-step
-        prediction. After each update, every range at least REVIEW_MIN_AGE_S old and still
-        REVIEW_MARGIN_S inside the lag window is classified again: residuals at the
-        smoothed keyframes and NLOS states, then forward-backward per anchor over the
-        window (from the forward prior of its first range, with the residual jumps), so
+        prediction. After each update, every range at least REVIEW_MIN_AGE_S old and
+        still REVIEW_MARGIN_S (plus one update) inside the lag window is classified again:
+        residuals at the smoothed keyframes and NLOS states, then forward-backward per
+        anchor over the window (from the forward prior of its first range, with the
+        residual jumps), so
         the ranges that followed a range weigh in as they do in batch. Ranges whose
         responsibility moved by more than REVIEW_CHANGE get their factors replaced in the
         next update (iSAM2 factor removal).
@@ -267,7 +268,10 @@ class GraphEstimator:
         (an escape from the local optimum that EM alone stays in).
         """
         now = b.time_of(b.k)
-        oldest = now - round((self.cfg.graph.lag - REVIEW_MARGIN_S) * NS_PER_S)
+        # the replacements go in with the next update, which adds `_chunk` keyframes and
+        # marginalises by as much: stay clear of what it will remove
+        margin = REVIEW_MARGIN_S + self._chunk / self.cfg.graph.keyframe_rate
+        oldest = now - round((self.cfg.graph.lag - margin) * NS_PER_S)
         while self._reviews and b.time_of(self._reviews[0].ka) < oldest:
             self._reviews.popleft()
         horizon = now - round(REVIEW_MIN_AGE_S * NS_PER_S)
