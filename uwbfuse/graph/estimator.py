@@ -299,12 +299,16 @@ class GraphEstimator:
         h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
         d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
         e = d + mix.mu_nlos
-        for a, sg in set(zip(anchor.tolist(), seg.tolist(), strict=True)):
+        pairs, inv = np.unique(np.stack([anchor, seg], axis=1), axis=0, return_inverse=True)
+        e_pair = np.full(len(pairs), np.nan)
+        for i, (a, sg) in enumerate(pairs.tolist()):
             if (a, sg) in b.e_created:
                 try:
-                    e[(anchor == a) & (seg == sg)] = sm.double(nlos_key(a, sg))
+                    e_pair[i] = sm.double(nlos_key(a, sg))
                 except (RuntimeError, IndexError):
                     pass
+        e_r = e_pair[inv.ravel()]
+        e = np.where(np.isnan(e_r), e, e_r)
         r_los = z - h - d
         r_nlos = z - h - e
         if SEARCH:
