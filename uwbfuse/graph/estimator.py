@@ -499,7 +499,8 @@ class GraphEstimator:
         cfg = self.cfg.model_copy(update={"graph": self.cfg.graph.model_copy(
             update={"estimate_range_scale": b.with_scale})})
         self._batch = offline.solve(cfg, b.full_graph, initial, rec,
-                                    self.anchors.positions, n, b.mixture, b.t0, b.scale)
+                                    self.anchors.positions, n, b.mixture, b.t0, b.scale,
+                                    has_wheel=b.has_wheel)
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""

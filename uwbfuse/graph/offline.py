@@ -34,9 +34,10 @@ from uwbfuse.streams import NS_PER_S
 log = logging.getLogger(__name__)
 
 EM_ROUND_LM_ITERATIONS = 6  # LM iterations of an intermediate EM round
-# online NLOS share from which batch EM starts NLOS-first; measured shares: warehouse-nlos
-# 0.28-0.34, warehouse 0.15-0.26, ISAS-Walk1 0.25, Labyrinth 0.11 (NLOS-first is worse on
-# the last three)
+# online NLOS share from which batch EM starts NLOS-first (wheeled logs); shares measured
+# with the windowed online review: warehouse-nlos 0.45-0.62 (NLOS-first 0.08-0.19 m against
+# 0.19-0.29 m online), warehouse 0.30-0.36, factory 0.13-0.20, room 0.12, Labyrinth 0.13
+# (NLOS-first 0.116 m, online 0.078 m); ISAS-Walk1 0.52 but has no wheels (see `solve`)
 HEAVY_NLOS_SHARE = 0.27
 
 
@@ -107,6 +108,7 @@ def solve(
     model: NlosModel,
     t0_ns: int,
     scale0: np.ndarray | None = None,
+    has_wheel: bool = True,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
@@ -117,11 +119,14 @@ def solve(
     with every range on its anchor's NLOS excess state only (no range committed to zero
     bias), then the E-steps. Where NLOS is lighter the online trajectory is the better
     start (measured on the real logs: the NLOS-first trajectory, with every anchor's bias
-    free, is looser without strong odometry).
+    free, is looser without strong odometry). NLOS-first needs wheel odometry to hold the
+    track's shape while every range floats on its excess state: without wheels (a handheld
+    IMU + UWB log) EM always starts online (ISAS-Walk1, online NLOS share 0.52: 0.19 m
+    online, 0.24 m NLOS-first).
     """
     share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
     return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
-                     nlos_first=cfg.graph.nlos and share >= HEAVY_NLOS_SHARE)
+                     nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
 
 
 def _solve_em(
