@@ -173,9 +173,9 @@ class GraphConfig(_Section):
         0.05, gt=0, description="prior std of each anchor's range bias around the common one, m"
     )
     estimate_range_scale: bool | Literal["auto"] = Field(
-        "auto", description="also estimate a per-anchor range scale factor: auto = from the "
-        "moment the LOS range residuals grow with distance by more than 2 % (radios that read "
-        "long or short, e.g. the Plaza logs' 7 %); true = always, false = never"
+        "auto", description="also estimate a per-anchor range scale factor: auto = when the "
+        "start solve (pose and one common scale from the first seconds) finds the ranges more "
+        "than 2 % long or short (e.g. the Plaza radios' 7 %); true = always, false = never"
     )
     range_scale_sigma: float = Field(
         0.05, gt=0, description="prior std of range scale factors (1 = none)"
