@@ -6,34 +6,40 @@ residual at the current estimate (vectorised numpy, no factor calls), (2) E-step
 forward-backward LOS/NLOS responsibilities, (3) M-step: noise parameters, (4) rebuilds the
 range factors (LOS part on D(a), NLOS part on the anchor's NLOS state E(a, s), weighted by
 the responsibilities; see `uwb`) and runs LM from the current values. Rounds stop early when
-the responsibilities settle.
-"""
+the responsibilities settle; a closing LM round then frees D(a).
+
+Range factors are kept across rounds (`_RangeFactors`: rebuilt only when a range's sigma,
+rounded to a 0.5 % grid, or its range changed); the base graph with the NLOS state priors is
+built once."""
 
 from __future__ import annotations
 
 import copy
 import logging
+import math
 from dataclasses import dataclass
 
 import gtsam
 import numpy as np
 
-from uwbfuse.config import Config
-from uwbfuse.graph.keys import D, X, nlos_key
-from uwbfuse.graph.noise import robust_weight
+from uwbfuse.config import Config, UwbConfig
+from uwbfuse.graph.keys import D, L, X, nlos_key
+from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
     MIN_WEIGHT,
     NlosModel,
     hmm_smooth,
     los_bias_key,
     nlos_state_factors,
-    range_factor,
 )
 from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-EM_ROUND_LM_ITERATIONS = 6  # LM iterations of an intermediate EM round
+# LM iterations of an intermediate EM round. Fewer (1-3) with more rounds was tried: better
+# on most simulated logs, but labyrinth +6 % and factory up to +30 % (EM lands in another
+# basin); going from the last E-step straight to the closing round cost factory seed 0 +7 %
+EM_ROUND_LM_ITERATIONS = 6
 # online NLOS share from which batch EM starts NLOS-first (wheeled logs); shares measured
 # with the windowed online review: warehouse-nlos 0.45-0.62 (NLOS-first 0.08-0.19 m against
 # 0.19-0.29 m online), warehouse 0.30-0.36, factory 0.13-0.20, room 0.12, Labyrinth 0.13
@@ -58,6 +64,10 @@ class BatchResult:
 
 def keyframe_arrays(values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
     """Rotations (n,3,3) and translations (n,3) of X(0..n-1)."""
+    # one call for every Pose3 (rows in key order); the keyframes are the only poses
+    m = gtsam.utilities.extractPose3(values)
+    if m.shape[0] == n_kf:
+        return m[:, :9].reshape(n_kf, 3, 3), m[:, 9:].copy()
     rot = np.empty((n_kf, 3, 3))
     trans = np.empty((n_kf, 3))
     for k in range(n_kf):
@@ -75,6 +85,73 @@ def predicted_ranges(
     k = rec["k"]
     p = np.einsum("nij,nj->ni", rot[k], rec["tag_in_kf"]) + trans[k]
     return np.linalg.norm(p - anchors[rec["anchor"]], axis=1)
+
+
+# relative step of the log grid the range sigmas are rounded to (weights within ~1 %), so
+# that a range whose weight barely moved between EM rounds keeps its factor
+SIGMA_STEP = 0.005
+
+
+class _RangeFactors:
+    """The LOS and NLOS factors of every range, kept across EM rounds.
+
+    A factor is rebuilt only when its sigma, rounded to a SIGMA_STEP log grid, or its
+    (scale-corrected) range changed, and the noise models are shared per rounded sigma.
+    GTSAM has no bulk constructor for per-measurement factors, and building ~2 per range
+    with their own noise models from Python every round cost more than an LM iteration.
+    """
+
+    def __init__(
+        self, rec: dict[str, np.ndarray], a_r: np.ndarray, uwb: UwbConfig, with_bias: bool,
+        nlos_keys: list[int] | None,
+    ) -> None:
+        n = len(a_r)
+        self.uwb = uwb
+        self.x = [X(k) for k in rec["k"].astype(np.int64).tolist()]
+        self.l = [L(a) for a in a_r.tolist()]
+        self.t_tag = [gtsam.Pose3(gtsam.Rot3(), t) for t in np.asarray(rec["tag_in_kf"], float)]
+        self.bias_keys: list[list[int | None]] = [
+            [los_bias_key(a, with_bias) for a in a_r.tolist()], list(nlos_keys or [])]
+        self._q = [np.full(n, -(1 << 30), np.int64), np.full(n, -(1 << 30), np.int64)]
+        self._z = [np.full(n, np.nan), np.full(n, np.nan)]
+        self._f: list[list[gtsam.NonlinearFactor | None]] = [[None] * n, [None] * n]
+        self._noise: dict[int, gtsam.noiseModel.Base] = {}
+
+    def add_to(
+        self, graph: gtsam.NonlinearFactorGraph, z: np.ndarray, sigma_los: float,
+        w_los: np.ndarray, sigma_nlos: float | None, w_nlos: np.ndarray,
+    ) -> None:
+        """Add the LOS (sigma_los / sqrt(w_los)) and NLOS factors of weight > MIN_WEIGHT."""
+        comps = [(0, sigma_los, w_los)]
+        if sigma_nlos is not None:
+            comps.append((1, sigma_nlos, w_nlos))
+        step = math.log1p(SIGMA_STEP)
+        for c, sigma, w in comps:
+            use = w > MIN_WEIGHT
+            q = np.round(np.log(sigma / np.sqrt(np.maximum(w, MIN_WEIGHT))) / step
+                         ).astype(np.int64)
+            stale = use & ((q != self._q[c]) | (z != self._z[c]))
+            f, keys = self._f[c], self.bias_keys[c]
+            for j in np.flatnonzero(stale).tolist():
+                f[j] = self._factor(j, float(z[j]), int(q[j]), keys[j], step)
+            self._q[c][stale] = q[stale]
+            self._z[c][stale] = z[stale]
+            for j in np.flatnonzero(use).tolist():
+                graph.add(f[j])
+
+    def _factor(
+        self, j: int, z: float, q: int, bias_key: int | None, step: float
+    ) -> gtsam.NonlinearFactor:
+        """`uwb.range_factor` with the noise model shared per rounded sigma."""
+        noise = self._noise.get(q)
+        if noise is None:
+            noise = range_noise(math.exp(q * step), self.uwb.robust_kernel,
+                                self.uwb.kernel_threshold)
+            self._noise[q] = noise
+        if bias_key is not None:
+            return gtsam.RangeFactorWithTransformBias3D(
+                self.x[j], self.l[j], bias_key, z, noise, self.t_tag[j])
+        return gtsam.RangeFactorWithTransform3D(self.x[j], self.l[j], z, noise, self.t_tag[j])
 
 
 class _NlosStates:
@@ -193,37 +270,36 @@ def _solve_em(
     r_nlos = np.zeros(len(h))
     sig_l = mix.sigma_los if g_cfg.nlos else uwb.sigma
 
+    factors = _RangeFactors(rec, a_r, uwb, with_bias,
+                            None if states is None or st_idx is None
+                            else [states.keys[i] for i in st_idx.tolist()])
+    static: dict[bool, gtsam.NonlinearFactorGraph] = {}
+    if states is not None:
+        for i, key in enumerate(states.keys):
+            values.insert(key, float(states.values[i]))
+
+    def static_graph(frozen: bool) -> gtsam.NonlinearFactorGraph:
+        """Base graph, the D(a) freeze (when frozen) and the NLOS state priors (built once)."""
+        if frozen not in static:
+            graph = gtsam.NonlinearFactorGraph(base_graph)
+            if frozen:
+                tight = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)
+                for a in range(n_anchor):
+                    graph.add(gtsam.PriorFactorDouble(D(a), float(d0[a]), tight))
+            if states is not None:
+                for i, key in enumerate(states.keys):
+                    prev = states.keys[states.prev[i]] if states.prev[i] >= 0 else None
+                    nlos_state_factors(graph, key, float(d0[states.anchor[i]]), prev, mix)
+            static[frozen] = graph
+        return static[frozen]
+
     def lm_round(
         vals: gtsam.Values, g: np.ndarray, frozen: bool, max_it: int | None = None
     ) -> gtsam.Values:
         nonlocal total_it
-        graph = gtsam.NonlinearFactorGraph(base_graph)
-        if frozen:
-            tight = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)
-            for a in range(n_anchor):
-                graph.add(gtsam.PriorFactorDouble(D(a), float(d0[a]), tight))
-        if states is not None:
-            for i, key in enumerate(states.keys):
-                prev = states.keys[states.prev[i]] if states.prev[i] >= 0 else None
-                nlos_state_factors(graph, key, float(d0[states.anchor[i]]), prev, mix)
-                if vals.exists(key):
-                    vals.update(key, float(states.values[i]))
-                else:
-                    vals.insert(key, float(states.values[i]))
-        z = rec["z"]
-        tag = rec["tag_in_kf"]
-        kk = rec["k"]
-        for j in range(len(z)):
-            aj = int(a_r[j])
-            t_tag = gtsam.Pose3(gtsam.Rot3(), tag[j])
-            w_l = 1.0 - g[j]
-            if w_l > MIN_WEIGHT:
-                graph.add(range_factor(int(kk[j]), aj, float(z[j]), sig_l / np.sqrt(w_l), t_tag,
-                                       uwb, los_bias_key(aj, with_bias)))
-            if states is not None and st_idx is not None and g[j] > MIN_WEIGHT:
-                graph.add(range_factor(int(kk[j]), aj, float(z[j]),
-                                       mix.sigma_nlos / np.sqrt(g[j]), t_tag, uwb,
-                                       states.keys[st_idx[j]]))
+        graph = gtsam.NonlinearFactorGraph(static_graph(frozen))
+        factors.add_to(graph, rec["z"], sig_l, 1.0 - g,
+                       mix.sigma_nlos if states is not None else None, g)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_it or g_cfg.lm_max_iterations)
         params.setRelativeErrorTol(1e-4)
@@ -263,9 +339,9 @@ def _solve_em(
         if g_prev is not None and np.mean(np.abs(g - g_prev) > 0.2) < 0.01:
             break
         g_prev = g
+        done = it + 1
         # intermediate EM rounds only need LM to get close: the next E-step moves anyway
         values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
-        done = it + 1
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
         if with_scale:
