@@ -116,6 +116,7 @@ class EpochFixer:
         self.nlos_prob_n = 0
         self.n_excluded = 0
         self.n_jumps = 0
+        self._track = False  # the last two accepted fixes agreed (the jump gate is armed)
         self.n_inconsistent = 0
         self._prev: tuple[int, np.ndarray] | None = None
         self._loo_grid = np.zeros((1, len(anchors)))
@@ -166,11 +167,15 @@ class EpochFixer:
         if self._prev is not None:
             # Jump gate: a fix farther from the last one than a vehicle can move is held
             # back, unless fixes keep disagreeing for _RELOCK_S (then the track moves).
+            # The gate needs a track: two consecutive fixes that agree. Until then a fix
+            # replaces the last one (the very first epoch may see only three anchors).
             dt = (t_ns - self._prev[0]) / NS_PER_S
             jump = float(np.linalg.norm(fx.position[k] - self._prev[1]))
-            if jump > _JUMP_FLOOR + _MAX_SPEED * dt and dt < _RELOCK_S:
+            far = jump > _JUMP_FLOOR + _MAX_SPEED * dt
+            if far and dt < _RELOCK_S and self._track:
                 self.n_jumps += 1
                 return None
+            self._track = not far and dt < _RELOCK_S
         self.n_fixes += 1
         self._prev = (int(t_ns), fx.position[k].copy())
         p = wf.nlos_prob[k]
