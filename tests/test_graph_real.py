@@ -23,7 +23,7 @@ from uwbfuse.positioning.initialisation import InitialState
 gtsam = pytest.importorskip("gtsam")
 
 
-# measured: isam2 0.101, isam2-smoothed 0.050, batch 0.077
+# measured: isam2 0.102, isam2-smoothed 0.053, batch 0.078
 @pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.14), (Method.ISAM2_SMOOTHED, 0.07),
                                                 (Method.BATCH, 0.10)])
 def test_labyrinth_wheels_and_uwb(method: Method, bound: float) -> None:
@@ -39,9 +39,9 @@ def test_labyrinth_wheels_and_uwb(method: Method, bound: float) -> None:
     assert np.median(biases) > 0.02
 
 
-# measured (SE(3)-aligned to the Vive GT): isam2 0.424, isam2-smoothed 0.226, batch 0.239
-@pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.55), (Method.ISAM2_SMOOTHED, 0.3),
-                                                (Method.BATCH, 0.31)])
+# measured (SE(3)-aligned to the Vive GT): isam2 0.453, isam2-smoothed 0.218, batch 0.193
+@pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.6), (Method.ISAM2_SMOOTHED, 0.29),
+                                                (Method.BATCH, 0.26)])
 def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
     """Test the graph on the real ISAS-Walk1 log (UWB + IMU, handheld, no wheels)."""
     cfg = load_config(real("isas-walk1/config.toml"))
@@ -56,7 +56,8 @@ def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
 def test_plaza2_batch_calibrates_the_range_scale_on_default_config() -> None:
     """Test Plaza2 (radios ~7 % long) on default config: below 1.5 m, scales reported.
 
-    Measured 0.308 m (1.83 m with `estimate_range_scale = false`).
+    Measured 0.267 m, anchor scales +6.7 to +7.4 % (1.64 m with `estimate_range_scale =
+    false`).
     """
     try:
         from uwbfuse.graph.plaza import plaza_log, plaza_path
@@ -66,7 +67,7 @@ def test_plaza2_batch_calibrates_the_range_scale_on_default_config() -> None:
         pytest.skip(f"Plaza2 not in this gtsam wheel: {e}")
     res = estimate(log, Method.BATCH, Config())
     ev = evaluate(res.trajectory, log.ground_truth, max_dt=0.1)
-    assert ev.ate_2d.rmse < 0.45
+    assert ev.ate_2d.rmse < 0.4
     scales = np.array([a["scale"] for a in res.report["anchors"].values()])
     assert np.all(np.isfinite(scales))
     assert 0.03 < np.median(scales) < 0.12  # reads long by several per cent
