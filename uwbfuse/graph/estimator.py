@@ -329,10 +329,13 @@ class GraphEstimator:
                 r_nlos = r_los - exc[anchor]
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         g = np.empty(len(z))
-        for a in np.unique(anchor).tolist():
-            sel = np.flatnonzero(anchor == a)
-            jl = jump_log_likelihoods(residual_jumps(t[sel], r_los[sel]), e[sel] - d[sel], mix)
-            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl,
+        sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
+        delta = np.empty(len(z))
+        for sel in sels:
+            delta[sel] = residual_jumps(t[sel], r_los[sel])
+        jl = jump_log_likelihoods(delta, e - d, mix)  # one call for every anchor
+        for sel in sels:
+            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
                                 float(prior[sel[0]]))
         off = 0
         for rb in batches:
