@@ -30,8 +30,6 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.uwb import (
-    JUMP_MAX_GAP_NS,
-    JUMP_MAX_M,
     MIN_WEIGHT,
     NlosModel,
     hmm_filter,
@@ -39,6 +37,7 @@ from uwbfuse.graph.uwb import (
     los_bias_key,
     nlos_state_factors,
     range_factor,
+    residual_jumps,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
 from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
@@ -498,23 +497,14 @@ class GraphBuilder:
     def _jump_evidence(
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
     ) -> np.ndarray:
-        """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one.
-
-        The residual change is usable when the previous range of the anchor is at most
-        JUMP_MAX_GAP_NS old; a change beyond JUMP_MAX_M is a gross outlier (the next range
-        is compared with the last one before it).
-        """
+        """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one
+        (`uwb.residual_jumps`; the anchor's last range of the previous keyframe leads)."""
         delta = np.full(len(t), np.nan)
         for anc in np.unique(a).tolist():
             sel = np.flatnonzero(a == anc)
-            r_prev, t_prev = self._jump_r[anc], self._jump_t[anc]
-            for j in sel.tolist():  # a few ranges per anchor and keyframe
-                d = r[j] - r_prev
-                if t[j] - t_prev <= JUMP_MAX_GAP_NS and abs(d) < JUMP_MAX_M:
-                    delta[j] = d
-                if not (t[j] - t_prev <= JUMP_MAX_GAP_NS and abs(d) >= JUMP_MAX_M):
-                    r_prev, t_prev = float(r[j]), int(t[j])
-            self._jump_r[anc], self._jump_t[anc] = r_prev, t_prev
+            tt = np.concatenate([[self._jump_t[anc]], t[sel]])
+            delta[sel] = residual_jumps(tt, np.concatenate([[self._jump_r[anc]], r[sel]]))[1:]
+            self._jump_r[anc], self._jump_t[anc] = float(r[sel[-1]]), int(t[sel[-1]])
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(
