@@ -498,12 +498,9 @@ class GraphEstimator:
         if b.with_bias:
             initial.insert(C, float(np.mean(b.range_bias)))
         rec = b.records.arrays()
-        # the online pass decided whether range scales are estimated (`auto`)
-        cfg = self.cfg.model_copy(update={"graph": self.cfg.graph.model_copy(
-            update={"estimate_range_scale": b.with_scale})})
-        self._batch = offline.solve(cfg, b.full_graph, initial, rec,
+        self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
-                                    has_wheel=b.has_wheel)
+                                    has_wheel=b.has_wheel, with_scale=b.with_scale)
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""

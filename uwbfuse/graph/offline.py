@@ -197,6 +197,7 @@ def solve(
     t0_ns: int,
     scale0: np.ndarray | None = None,
     has_wheel: bool = True,
+    with_scale: bool = False,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
@@ -207,13 +208,15 @@ def solve(
     with every range on its anchor's NLOS excess state only (no range committed to zero
     bias), then the E-steps. Where NLOS is lighter the online trajectory is the better
     start (measured on the real logs: the NLOS-first trajectory, with every anchor's bias
-    free, is looser without strong odometry). NLOS-first needs wheel odometry to hold the
+    free, is looser without strong odometry). `with_scale`: refine the per-anchor range
+    scales, starting from `scale0` (the online pass's). NLOS-first needs wheel odometry to hold the
     track's shape while every range floats on its excess state: without wheels (a handheld
     IMU + UWB log) EM always starts online (ISAS-Walk1, online NLOS share 0.52: 0.19 m
     online, 0.24 m NLOS-first).
     """
     share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
-    return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
+    return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns,
+                     scale0 if with_scale else None,
                      nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
 
 
@@ -232,8 +235,8 @@ def _solve_em(
     """One EM + LM run from the online trajectory, or NLOS-first (see `solve`)."""
     g_cfg = cfg.graph
     uwb = cfg.uwb
-    with_scale = g_cfg.estimate_range_scale
-    scale = np.zeros(len(anchors)) if scale0 is None or not with_scale else scale0.copy()
+    with_scale = scale0 is not None  # range scales are estimated (decided online, `auto`)
+    scale = np.zeros(len(anchors)) if scale0 is None else scale0.copy()
     z_raw = rec["z"]
     rec = dict(rec)
     rec["z"] = z_raw / (1.0 + scale[rec["anchor"]])
