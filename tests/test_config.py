@@ -85,3 +85,21 @@ def test_cli_missing_config_exits_2(tmp_path: Path, capsys: pytest.CaptureFixtur
     code = main(["run", "x.mcap", "--method", "odom", "--config", str(tmp_path / "no.toml")])
     assert code == 2
     assert "config file not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("text", "value"), [('"auto"', "auto"), ("true", True),
+                                             ("false", False)])
+def test_range_scale_takes_auto_or_a_boolean(tmp_path: Path, text: str, value: object) -> None:
+    """test that graph.estimate_range_scale accepts "auto", true and false"""
+    p = tmp_path / "c.toml"
+    p.write_text(f"[graph]\nestimate_range_scale = {text}\n")
+    assert load_config(p).graph.estimate_range_scale == value
+
+
+def test_bad_union_value_names_the_field_and_both_choices(tmp_path: Path) -> None:
+    """test that a bad value of a union field (bool or "auto") names the field itself"""
+    p = tmp_path / "bad.toml"
+    p.write_text('[graph]\nestimate_range_scale = "maybe"\n')
+    with pytest.raises(ConfigError, match=r"bad value for 'graph.estimate_range_scale': "
+                                          r".*boolean.* or .*'auto'"):
+        load_config(p)

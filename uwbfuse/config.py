@@ -297,12 +297,27 @@ class Config(_Section):
         return v
 
 
+def _is_union_tag(part: object) -> bool:
+    """Whether a pydantic error-location part names a union member, not a field."""
+    return isinstance(part, str) and ("[" in part or part in {"bool", "int", "float", "str"})
+
+
 def _format_validation_error(source: str, err: ValidationError) -> str:
-    first = err.errors()[0]
-    key = ".".join(str(p) for p in first["loc"])
+    errors = err.errors()
+    first = errors[0]
+    loc = tuple(first["loc"])
+    msg = first["msg"]
+    # a union field (e.g. `bool | "auto"`) fails once per member, each loc ending in the
+    # member's tag: name the field and list what each member wanted
+    same = [e for e in errors if tuple(e["loc"])[:-1] == loc[:-1]
+            and _is_union_tag(e["loc"][-1])]
+    if len(loc) > 1 and len(same) > 1 and _is_union_tag(loc[-1]):
+        loc = loc[:-1]
+        msg = " or ".join(e["msg"] for e in same)
+    key = ".".join(str(p) for p in loc)
     if first["type"] == "extra_forbidden":
         return f"{source}: unknown config key '{key}'"
-    return f"{source}: bad value for '{key}': {first['msg']}"
+    return f"{source}: bad value for '{key}': {msg}"
 
 
 def config_from_dict(data: dict[str, Any], source: str = "config") -> Config:
