@@ -103,3 +103,22 @@ def test_bad_union_value_names_the_field_and_both_choices(tmp_path: Path) -> Non
     with pytest.raises(ConfigError, match=r"bad value for 'graph.estimate_range_scale': "
                                           r".*boolean.* or .*'auto'"):
         load_config(p)
+
+
+@pytest.mark.parametrize(("text", "value"), [('"auto"', "auto"), ("20", 20.0), ("1.5", 1.5)])
+def test_imu_inflation_takes_auto_or_a_positive_number(
+    tmp_path: Path, text: str, value: object
+) -> None:
+    """test that graph.imu_noise_inflation accepts "auto" and positive numbers"""
+    p = tmp_path / "c.toml"
+    p.write_text(f"[graph]\nimu_noise_inflation = {text}\n")
+    assert load_config(p).graph.imu_noise_inflation == value
+
+
+@pytest.mark.parametrize("text", ["0", "-3", '"loose"', "nan"])
+def test_bad_imu_inflation_is_named(tmp_path: Path, text: str) -> None:
+    """test that a zero, negative, NaN or unknown imu_noise_inflation names the field"""
+    p = tmp_path / "bad.toml"
+    p.write_text(f"[graph]\nimu_noise_inflation = {text}\n")
+    with pytest.raises(ConfigError, match=r"graph.imu_noise_inflation"):
+        load_config(p)

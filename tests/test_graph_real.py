@@ -39,9 +39,11 @@ def test_labyrinth_wheels_and_uwb(method: Method, bound: float) -> None:
     assert np.median(biases) > 0.02
 
 
-# measured (SE(3)-aligned to the Vive GT): isam2 0.453, isam2-smoothed 0.218, batch 0.173
-@pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.6), (Method.ISAM2_SMOOTHED, 0.29),
-                                                (Method.BATCH, 0.26)])
+# measured (SE(3)-aligned to the Vive GT, IMU noise inflation `auto` = 30 without wheels):
+# isam2 0.226, isam2-smoothed 0.144, batch 0.124 (ekf 0.165; at inflation 10: 0.453, 0.218,
+# 0.227)
+@pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.30), (Method.ISAM2_SMOOTHED, 0.19),
+                                                (Method.BATCH, 0.16)])
 def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
     """Test the graph on the real ISAS-Walk1 log (UWB + IMU, handheld, no wheels)."""
     cfg = load_config(real("isas-walk1/config.toml"))

@@ -147,10 +147,12 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
-    imu_noise_inflation: float = Field(
-        10.0, gt=0, description="factor on the IMU noise densities and bias random walks in "
+    imu_noise_inflation: float | Literal["auto"] = Field(
+        "auto", description="factor on the IMU noise densities and bias random walks in "
         "the preintegration: room for the unmodelled errors of consumer MEMS (scale, "
-        "misalignment, vibration); 1 = trust the [imu] figures as they are"
+        "misalignment, vibration); 1 = trust the [imu] figures as they are; auto = 10 when "
+        "the log has wheel odometry, 30 when it has none (the IMU alone then carries the "
+        "motion between ranges)"
     )
     update_every: int = Field(
         3, ge=1, description="keyframes per iSAM2 update (between updates the output is "
@@ -172,6 +174,13 @@ class GraphConfig(_Section):
     range_bias_anchor_sigma: float = Field(
         0.05, gt=0, description="prior std of each anchor's range bias around the common one, m"
     )
+    @field_validator("imu_noise_inflation")
+    @classmethod
+    def _positive_inflation(cls, v: float | str) -> float | str:
+        if not isinstance(v, str) and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"must be a positive number or 'auto', got {v}")
+        return v
+
     estimate_range_scale: bool | Literal["auto"] = Field(
         "auto", description="also estimate a per-anchor range scale factor: auto = when the "
         "start solve (pose and one common scale from the first seconds) finds the ranges more "

@@ -20,7 +20,7 @@ widens it to the inputs the graph sees:
   (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D.
 - Covariance updates in Joseph form.
 - Process noise: the `[imu]` densities and bias random walks times `[ekf]
-  imu_noise_inflation` (default 30, as the graph inflates its preintegration noise): a real
+  imu_noise_inflation` (default 30, the graph's figure for logs without wheels): a real
   consumer MEMS carried by hand errs far beyond its white noise (scale, misalignment,
   vibration), and a filter that trusts the datasheet figures becomes overconfident, gates
   good ranges and diverges (ISAS-Walk1: 2-D ATE 0.61 m at 1, 0.18 m at 30; simulated
