@@ -75,6 +75,31 @@ def test_plaza2_batch_calibrates_the_range_scale_on_default_config() -> None:
     assert 0.03 < np.median(scales) < 0.12  # reads long by several per cent
 
 
+def test_plaza2_isam2_holds_a_standstill_fix_until_the_start() -> None:
+    """Test Plaza2 isam2 (causal): the 21 s standstill before the graph can fix a heading
+    gets the scale-aware standstill fix, not per-epoch WLS fixes.
+
+    Measured: standstill fixes 0.16-0.35 m off for 21 s (the WLS provisional fixes were
+    ~9 m off: ranges 7 % long), no pose from the first wheel motion to the graph start at
+    24 s, whole-log 2-D ATE 0.521 m (2.157 m before).
+    """
+    try:
+        from uwbfuse.graph.plaza import plaza_log, plaza_path
+
+        log = plaza_log(plaza_path("Plaza2"))
+    except Exception as e:  # any failure to find the data file
+        pytest.skip(f"Plaza2 not in this gtsam wheel: {e}")
+    res = estimate(log, Method.ISAM2, Config())
+    assert res.report["standstill_fix_epochs"] > 150
+    tr, gt = res.trajectory, log.ground_truth
+    gp = np.column_stack([np.interp(tr.t_ns, gt.t_ns, gt.position[:, i]) for i in range(2)])
+    err = np.linalg.norm(tr.position[:, :2] - gp, axis=1)
+    early = tr.t_ns < log.ranges.t_ns[0] + 20 * 10**9
+    assert np.count_nonzero(early) > 150
+    assert np.max(err[early]) < 0.6
+    assert evaluate(tr, gt, max_dt=0.1).ate_2d.rmse < 0.7
+
+
 def _start(range_scale: float) -> InitialState:
     return InitialState(t_ns=0, position=np.zeros(3), R_map_base=np.eye(3),
                         velocity=np.zeros(3), gyro_bias=np.zeros(3), accel_bias=np.zeros(3),

@@ -4,7 +4,9 @@
 Data arrive in time-sorted batches (`add_imu`, `add_wheel`, `add_ranges`). Until the
 sensors determine a start (`positioning.initialisation.Initialiser`; for wheeled logs whose
 sparse round-robin ranges give it no fixes, the graph's own `start.solve_start` after a few
-seconds), `estimate()` is None. From then on each `step(t)` builds every keyframe with time
+seconds), `estimate()` is None, except that a wheeled log without an IMU standing still
+since its first range gets a provisional position from all its ranges with a common range
+scale (`start.solve_static`). From then on each `step(t)` builds every keyframe with time
 <= t (`GraphBuilder`) and feeds them to a fixed-lag iSAM2 (`OnlineSmoother`) every
 `graph.update_every` keyframes; `estimate()` is the newest keyframe (solved or predicted
 from the last solved one by wheels/IMU) composed with the motion up to t: causal.
@@ -49,7 +51,14 @@ from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
-from uwbfuse.graph.start import solve_start
+from uwbfuse.graph.start import (
+    STATIC_MAX_DRIFT_M,
+    STATIC_MAX_SPEED,
+    STATIC_MAX_TURN_RAD,
+    STATIC_MAX_YAW_RATE,
+    solve_start,
+    solve_static,
+)
 from uwbfuse.graph.uwb import (
     hmm_smooth,
     jump_log_likelihoods,
@@ -70,6 +79,7 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
 FALLBACK_RETRY_S = 1.0  # s of data between two fallback attempts
+STATIC_WHEEL_GAP_NS = 500_000_000  # wheel data must reach this close to a standstill's ends
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -123,6 +133,9 @@ class GraphEstimator:
         self._fallback_t: int | None = None
         self._fallback_used = False
         self._batch_wall = 0.0
+        self._static: PoseEstimate | None = None  # standstill fix before the start
+        self._static_t: int | None = None
+        self._n_static = 0
 
     # ------------------------------------------------------------------ input
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -155,7 +168,9 @@ class GraphEstimator:
             if state is None:
                 state = self._fallback_start(int(t_ns))
             if state is None:
+                self._static = self._static_fix(int(t_ns))
                 return
+            self._static = None
             self._start(state)
         self._steps.append(int(t_ns))
         b = self.builder
@@ -190,6 +205,51 @@ class GraphEstimator:
                      "ranges at t=%.3f s", t_ns * 1e-9)
             self._fallback_used = True
         return state
+
+    def _standing_still(self, t_from: int, t_to: int) -> bool:
+        """The wheels cover [t_from, t_to] and stood still through it (`start` STATIC_* limits)."""
+        w = self.wheel
+        gap = STATIC_WHEEL_GAP_NS
+        if len(w) < 2 or w.t[0] > t_from + gap or w.t[-1] < t_to - gap:
+            return False
+        i0, i1 = np.searchsorted(w.t, [t_from, t_to])
+        seg = slice(max(i0 - 1, 0), min(i1 + 1, len(w)))
+        if (np.max(np.abs(w.v[seg])) > STATIC_MAX_SPEED
+                or np.max(np.abs(w.w[seg])) > STATIC_MAX_YAW_RATE):
+            return False
+        p = w.pose[seg]
+        drift = float(np.max(np.hypot(p[:, 0] - p[0, 0], p[:, 1] - p[0, 1])))
+        turn = float(np.max(np.abs(p[:, 2] - p[0, 2])))
+        return drift <= STATIC_MAX_DRIFT_M and turn <= STATIC_MAX_TURN_RAD
+
+    def _static_fix(self, t_ns: int) -> PoseEstimate | None:
+        """Provisional pose of a wheeled log without an IMU that has not moved since its
+        first range (`start.solve_static`, re-solved every FALLBACK_RETRY_S), else None.
+
+        The heading is unknown at a standstill: the pose is reported with the map frame's
+        orientation, and the base position is the tag's (the lever arm's direction is
+        unknown too). Once the wheels move, there is no pose until the graph starts.
+        """
+        if "imu" in self.streams or "wheel" not in self.streams or not self._pre_ranges:
+            return None
+        t_first = int(self._pre_ranges[0][0][0])
+        if not self._standing_still(t_first, t_ns):
+            return None
+        if self._static is not None and self._static_t is not None and (
+                t_ns - self._static_t < FALLBACK_RETRY_S * NS_PER_S):
+            self._n_static += 1
+            return PoseEstimate(t_ns, self._static.position, self._static.quat_xyzw)
+        self._static_t = t_ns
+        a = np.concatenate([r[1] for r in self._pre_ranges]).astype(np.int64)
+        z = np.concatenate([r[2] for r in self._pre_ranges]).astype(np.float64)
+        base_z = planar_height(self.anchors, 0.0)
+        tag = np.asarray(self.cfg.extrinsics.tag_in_base, float)
+        fix = solve_static(self.anchors, a, z, base_z + float(tag[2]))
+        if fix is None:
+            return None
+        self._n_static += 1
+        return PoseEstimate(t_ns, np.array([fix[0][0], fix[0][1], base_z]),
+                            np.array([0.0, 0.0, 0.0, 1.0]))
 
     def _start(self, state: Any) -> None:
         self.builder = GraphBuilder(
@@ -444,7 +504,9 @@ class GraphEstimator:
     # ------------------------------------------------------------------ output
     def estimate(self) -> PoseEstimate | None:
         """Causal pose at the last step time, or None before initialisation."""
-        if self.builder is None or self._last_t is None:
+        if self.builder is None:
+            return self._static
+        if self._last_t is None:
             return None
         p = self.builder.predict(self._last_t)
         return PoseEstimate(self._last_t, np.asarray(p.translation()), _quat_xyzw(p))
@@ -563,6 +625,7 @@ class GraphEstimator:
     def report(self) -> dict[str, Any]:
         """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
         out: dict[str, Any] = {"method": self.method.value}
+        out["standstill_fix_epochs"] = self._n_static
         b = self.builder
         if b is None:
             out["initialised"] = False

@@ -110,3 +110,60 @@ def solve_start(
         range_scale=1.0 + float(best[4]),
         range_sigma=rms,
     )
+
+
+# standstill fix (`solve_static`)
+STATIC_MIN_RANGES = 8
+STATIC_MIN_ANCHORS = 4  # x, y and a common scale, plus one range of redundancy
+STATIC_MAX_RANGES = 2000  # the newest ones are kept on a long standstill
+# standing still: every wheel sample under these speeds (Plaza2's odometry reads 8 mm/s
+# and -7 mrad/s at rest, so a path-length test would fail within seconds) ...
+STATIC_MAX_SPEED = 0.05  # m/s
+STATIC_MAX_YAW_RATE = 0.05  # rad/s
+# ... and the dead-reckoned track within these of where it was at the first range
+STATIC_MAX_DRIFT_M = 0.3
+STATIC_MAX_TURN_RAD = 0.3
+STATIC_MAX_SCALE = 0.15
+
+
+def solve_static(
+    anchors: AnchorMap, a_r: np.ndarray, z_r: np.ndarray, tag_z: float
+) -> tuple[np.ndarray, float, float] | None:
+    """Tag position (x, y) in the map frame, common range scale error k and robust residual
+    rms (m) from the ranges of a tag that has not moved, or None.
+
+    The provisional answer of a wheeled log without an IMU before `solve_start` can fix a
+    heading: while the wheels say the vehicle stands still every range so far comes from one
+    point, so (1 + k) |p - anchor| = z is fitted to all of them (soft-L1, tag height
+    `tag_z` in the map frame, |k| <= 15 %). Per-epoch multilateration cannot see a common
+    scale error, which it turns into metres of position error far from the anchors (Plaza2:
+    ranges 7 % long, WLS fixes ~9 m off; this fit 0.15-0.3 m). Needs STATIC_MIN_ANCHORS
+    anchors; rejected when the residuals are inconsistent or another minimum comes close.
+    """
+    if len(z_r) < STATIC_MIN_RANGES or len(np.unique(a_r)) < STATIC_MIN_ANCHORS:
+        return None
+    a_r, z_r = a_r[-STATIC_MAX_RANGES:], z_r[-STATIC_MAX_RANGES:]
+    anc = anchors.positions[a_r]
+    dz2 = (tag_z - anc[:, 2]) ** 2
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        d = np.sqrt((p[0] - anc[:, 0]) ** 2 + (p[1] - anc[:, 1]) ** 2 + dz2)
+        return (1.0 + p[2]) * d - z_r
+
+    used = anchors.positions[np.unique(a_r), :2]
+    seeds = [used.mean(axis=0)] + [p + 1.0 for p in used]  # centroid, beside each anchor
+    sols = []
+    for s in seeds:
+        r = least_squares(resid, [s[0], s[1], 0.0], loss="soft_l1", f_scale=0.2, max_nfev=200,
+                          bounds=([-np.inf, -np.inf, -STATIC_MAX_SCALE],
+                                  [np.inf, np.inf, STATIC_MAX_SCALE]))
+        sols.append((float(r.cost), r.x))
+    sols.sort(key=lambda c_x: c_x[0])
+    best_cost, best = sols[0]
+    other = [c for c, x in sols[1:] if np.hypot(*(x[:2] - best[:2])) > 1.0]
+    rms = math.sqrt(2.0 * best_cost / len(z_r))
+    if rms > max(MAX_RMS_M, MAX_RMS_REL * float(np.median(z_r))):
+        return None
+    if other and other[0] < MIN_COST_RATIO * best_cost:
+        return None
+    return best[:2].copy(), float(best[2]), rms

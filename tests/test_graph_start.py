@@ -1,0 +1,51 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The graph's own start helpers (`uwbfuse.graph.start`): the standstill fix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from uwbfuse.graph.start import solve_static
+from uwbfuse.streams import AnchorMap
+
+ANCHORS = AnchorMap(ids=("a", "b", "c", "d"),
+                    positions=np.array([[0.0, 0, 3], [30, 0, 3], [30, 20, 3], [0, 20, 3]]))
+
+
+def _ranges(tag: np.ndarray, scale: float, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    a = np.arange(n) % len(ANCHORS)
+    d = np.linalg.norm(ANCHORS.positions[a] - tag, axis=1)
+    return a, (1.0 + scale) * d + rng.normal(0.0, 0.05, n)
+
+
+@pytest.mark.parametrize("tag_xy", [(12.0, 7.0), (-8.0, 30.0)])  # inside, outside the anchors
+def test_static_fix_finds_the_tag_through_a_range_scale(tag_xy: tuple[float, float]) -> None:
+    """test that ranges 7 % long from one point give the point and the scale back"""
+    tag = np.array([*tag_xy, 0.3])
+    a, z = _ranges(tag, 0.07, 60)
+    fix = solve_static(ANCHORS, a, z, 0.3)
+    assert fix is not None
+    xy, k, rms = fix
+    assert np.linalg.norm(xy - tag[:2]) < 0.1
+    assert k == pytest.approx(0.07, abs=0.005)
+    assert rms < 0.1
+
+
+def test_static_fix_needs_four_anchors_and_enough_ranges() -> None:
+    """test that three anchors (no redundancy with the scale) or a few ranges give None"""
+    tag = np.array([12.0, 7.0, 0.3])
+    a, z = _ranges(tag, 0.0, 60)
+    three = a < 3
+    assert solve_static(ANCHORS, a[three], z[three], 0.3) is None
+    assert solve_static(ANCHORS, a[:6], z[:6], 0.3) is None
+
+
+def test_static_fix_rejects_ranges_from_a_moving_tag() -> None:
+    """test that ranges from a tag that crossed the site do not pass for a standstill"""
+    rng = np.random.default_rng(1)
+    a = np.arange(80) % 4
+    path = np.column_stack([np.linspace(2, 28, 80), np.linspace(2, 18, 80), np.full(80, 0.3)])
+    z = np.linalg.norm(ANCHORS.positions[a] - path, axis=1) + rng.normal(0, 0.05, 80)
+    assert solve_static(ANCHORS, a, z, 0.3) is None
