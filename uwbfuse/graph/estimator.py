@@ -235,8 +235,9 @@ class GraphEstimator:
         t_first = int(self._pre_ranges[0][0][0])
         if not self._standing_still(t_first, t_ns):
             return None
-        if self._static is not None and self._static_t is not None and (
-                t_ns - self._static_t < FALLBACK_RETRY_S * NS_PER_S):
+        if self._static_t is not None and t_ns - self._static_t < FALLBACK_RETRY_S * NS_PER_S:
+            if self._static is None:  # the last attempt failed: wait for the next one
+                return None
             self._n_static += 1
             return PoseEstimate(t_ns, self._static.position, self._static.quat_xyzw)
         self._static_t = t_ns
