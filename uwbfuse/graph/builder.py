@@ -535,12 +535,20 @@ class GraphBuilder:
     ) -> np.ndarray:
         """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one
         (`uwb.residual_jumps`; the anchor's last range of the previous keyframe leads)."""
-        delta = np.full(len(t), np.nan)
-        for anc in np.unique(a).tolist():
-            sel = np.flatnonzero(a == anc)
-            tt = np.concatenate([[self._jump_t[anc]], t[sel]])
-            delta[sel] = residual_jumps(tt, np.concatenate([[self._jump_r[anc]], r[sel]]))[1:]
-            self._jump_r[anc], self._jump_t[anc] = float(r[sel[-1]]), int(t[sel[-1]])
+        # one vectorised call for every anchor: each anchor's ranges in time order, led by
+        # its last range of the previous keyframe (whose own jump is dropped)
+        order = np.lexsort((t, a))
+        a_s = a[order]
+        starts = np.flatnonzero(np.concatenate([[True], a_s[1:] != a_s[:-1]]))
+        lead = a_s[starts]
+        t_s, r_s = t[order], r[order]
+        d = residual_jumps(np.insert(t_s, starts, self._jump_t[lead]),
+                           np.insert(r_s, starts, self._jump_r[lead]))
+        d = np.delete(d, starts + np.arange(len(starts)))
+        delta = np.empty(len(t))
+        delta[order] = d
+        ends = np.concatenate([starts[1:], [len(a_s)]]) - 1
+        self._jump_r[lead], self._jump_t[lead] = r_s[ends], t_s[ends]
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(

@@ -12,6 +12,8 @@ The wheel twist is already in the base frame, so the base extrinsics are the ide
 
 from __future__ import annotations
 
+import math
+
 import gtsam
 import numpy as np
 
@@ -174,19 +176,31 @@ class WheelTrack:
         idx = np.clip(np.searchsorted(self.t, mid, side="left"), 0, n - 1)
         tau = np.diff(edges).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
-        q = np.array([cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2])
+        q0, q1, q2 = cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2
+        # P <- F P F^T + G Q G^T per piece, F = [[1, 0, a], [0, 1, b], [0, 0, 1]] (a, b: the
+        # piece's translation in the frame at t_a, turned by 90 deg), G = rot(theta) (+) 1,
+        # Q = diag(q) tau^2; in scalars: a few pieces per keyframe, and 3x3 numpy products
+        # cost ~10x more per piece than the arithmetic
+        p00 = p01 = p02 = p11 = p12 = p22 = 0.0
         th = 0.0
-        x = y = 0.0
-        for j in range(len(tau)):
-            c, s = np.cos(th), np.sin(th)
-            f = np.array([[1.0, 0.0, -s * dx[j] - c * dy[j]],
-                          [0.0, 1.0, c * dx[j] - s * dy[j]],
-                          [0.0, 0.0, 1.0]])
-            g = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            cov = f @ cov @ f.T + (g * (q * tau[j] ** 2)) @ g.T
-            x += c * dx[j] - s * dy[j]
-            y += s * dx[j] + c * dy[j]
-            th += dth[j]
+        for dxj, dyj, dthj, tj in zip(dx.tolist(), dy.tolist(), dth.tolist(), tau.tolist(),
+                                      strict=True):
+            c, s = math.cos(th), math.sin(th)
+            a = -s * dxj - c * dyj
+            b = c * dxj - s * dyj
+            r00, r01, r02 = p00 + a * p02, p01 + a * p12, p02 + a * p22
+            n00 = r00 + a * r02
+            n01 = r01 + b * r02
+            n11 = (p11 + b * p12) + b * (p12 + b * p22)
+            t2 = tj * tj
+            g0, g1 = q0 * t2, q1 * t2
+            p00 = n00 + c * c * g0 + s * s * g1
+            p01 = n01 + c * s * (g0 - g1)
+            p11 = n11 + s * s * g0 + c * c * g1
+            p02, p12 = r02, p12 + b * p22
+            p22 = p22 + q2 * t2
+            th += dthj
+        cov = np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
         return cov
 
 
