@@ -45,3 +45,63 @@ def test_smoothers_cover_the_start_without_wheels(method: Method) -> None:
     assert traj.t_ns[0] <= t_motion + 0.1 * NS_PER_S
     after = traj.t_ns[traj.t_ns >= t_motion]
     assert np.max(np.diff(after)) <= 0.1 * NS_PER_S + 1
+
+
+class _Scripted:
+    """Fake estimator: answers from a script {step index: position or None}."""
+
+    def __init__(self, script: dict[int, tuple[float, float] | None], provisional_until: int = -1):
+        self.script = script
+        self.k = -1
+        self.t = 0
+        self.provisional_until = provisional_until
+
+    @property
+    def provisional(self) -> bool:
+        return self.k <= self.provisional_until
+
+    def add_imu(self, *a: object) -> None: ...
+    def add_wheel(self, *a: object) -> None: ...
+    def add_ranges(self, *a: object) -> None: ...
+
+    def step(self, t_ns: int) -> None:
+        self.k += 1
+        self.t = t_ns
+
+    def estimate(self) -> object:
+        from uwbfuse.estimator import PoseEstimate
+
+        xy = self.script.get(self.k)
+        if xy is None:
+            return None
+        return PoseEstimate(self.t, np.array([*xy, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]))
+
+    def finish(self) -> None:
+        return None
+
+    def report(self) -> dict:
+        return {}
+
+
+@pytest.mark.parametrize(("fallback_xy", "first_fallback_epoch"), [
+    ((0.3, 0.0), 10),    # agrees with the standstill fix: answers as soon as the primary stops
+    ((9.0, 0.0), 110),   # 9 m off: discredited, answers after 10 s of silence
+])
+def test_fallback_after_provisional_answers(
+    fallback_xy: tuple[float, float], first_fallback_epoch: int
+) -> None:
+    """test WithFallback: provisional answers keep the fallback; a fallback that disagreed
+    with them waits PROVISIONAL_GRACE_S before it answers"""
+    from uwbfuse.estimator import WithFallback
+
+    primary = _Scripted({k: (0.0, 0.0) for k in range(10)}, provisional_until=9)
+    fallback = _Scripted({k: fallback_xy for k in range(200)})
+    wf = WithFallback(primary, fallback)
+    answered = []
+    for k in range(200):
+        wf.step(k * 100_000_000)  # 10 Hz
+        est = wf.estimate()
+        answered.append(est is not None and est.position[0] != 0.0)
+    assert wf.fallback is not None  # provisional answers never dropped it
+    assert answered.index(True) == first_fallback_epoch
+    assert all(answered[first_fallback_epoch:])

@@ -82,11 +82,25 @@ class WithFallback:
     wants poses from the first motion on. The fallback (UWB-only WLS for ranging methods)
     gives those epochs a provisional pose; it is fed until the primary has answered
     `DROP_AFTER_EPOCHS` epochs in a row.
+
+    A primary may answer provisionally before its start (its `provisional` attribute is
+    true: the graph's standstill fix). Such answers win over the fallback but do not count
+    towards dropping it, and the fallback keeps running beside them. When the primary falls
+    silent after them (the vehicle moved before the primary could start), the fallback
+    answers again at once if its last fix agreed with the provisional one within
+    `DISAGREE_M`; if not, its fixes are biased (Plaza2: WLS ~9 m off while the standstill
+    fix, which fits a common range scale, is 0.2 m off) and it answers only after
+    `PROVISIONAL_GRACE_S` of silence (the primary usually starts within a few seconds).
     `finish()` and `report()` are the primary's (the report counts the fallback epochs).
     """
 
     DROP_AFTER_EPOCHS = 20
     """The fallback is dropped once the primary has answered this many epochs in a row."""
+    DISAGREE_M = 1.0
+    """Horizontal distance between the fallback's and a provisional fix that discredits
+    the fallback, m."""
+    PROVISIONAL_GRACE_S = 10.0
+    """Silence of the primary before a discredited fallback answers, s."""
 
     def __init__(self, primary: Estimator, fallback: Estimator) -> None:
         self.primary = primary
@@ -94,6 +108,8 @@ class WithFallback:
         self.fallback_epochs = 0
         self._current: PoseEstimate | None = None
         self._primary_streak = 0
+        self._discredited = False
+        self._silent_since: int | None = None
 
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         self.primary.add_imu(t_ns, gyro, accel)
@@ -114,6 +130,15 @@ class WithFallback:
         self.primary.step(t_ns)
         self._current = self.primary.estimate()
         if self._current is not None:
+            self._silent_since = None
+            if getattr(self.primary, "provisional", False):
+                if self.fallback is not None:
+                    self.fallback.step(t_ns)
+                    fb = self.fallback.estimate()
+                    if fb is not None:
+                        gap = float(np.hypot(*(fb.position[:2] - self._current.position[:2])))
+                        self._discredited = gap > self.DISAGREE_M
+                return
             self._primary_streak += 1
             if self._primary_streak >= self.DROP_AFTER_EPOCHS:
                 self.fallback = None  # the primary is up for good: free the buffers
@@ -121,9 +146,13 @@ class WithFallback:
                 self.fallback.step(t_ns)  # keep it current in case the primary drops out
             return
         self._primary_streak = 0
+        if self._silent_since is None:
+            self._silent_since = t_ns
         if self.fallback is not None:
             self.fallback.step(t_ns)
-            self._current = self.fallback.estimate()
+            wait = self._discredited and (
+                t_ns - self._silent_since < self.PROVISIONAL_GRACE_S * NS_PER_S)
+            self._current = None if wait else self.fallback.estimate()
             if self._current is not None:
                 self.fallback_epochs += 1
 

@@ -503,6 +503,11 @@ class GraphEstimator:
             raise EstimatorError(f"graph re-anchoring failed: {exc}") from None
 
     # ------------------------------------------------------------------ output
+    @property
+    def provisional(self) -> bool:
+        """`estimate()` is a standstill fix from before the start (see `WithFallback`)."""
+        return self.builder is None
+
     def estimate(self) -> PoseEstimate | None:
         """Causal pose at the last step time, or None before initialisation."""
         if self.builder is None:
