@@ -85,13 +85,14 @@ class _Scripted:
 
 @pytest.mark.parametrize(("fallback_xy", "first_fallback_epoch"), [
     ((0.3, 0.0), 10),    # agrees with the standstill fix: answers as soon as the primary stops
-    ((9.0, 0.0), 110),   # 9 m off: discredited, answers after 10 s of silence
+    ((9.0, 0.0), 60),    # 9 m off: discredited, the last provisional pose is held 5 s
 ])
 def test_fallback_after_provisional_answers(
     fallback_xy: tuple[float, float], first_fallback_epoch: int
 ) -> None:
-    """test WithFallback: provisional answers keep the fallback; a fallback that disagreed
-    with them waits PROVISIONAL_GRACE_S before it answers"""
+    """test WithFallback: provisional answers keep the fallback; in place of a fallback
+    that disagreed with them the last provisional pose is held for PROVISIONAL_GRACE_S;
+    every epoch has a pose"""
     from uwbfuse.estimator import WithFallback
 
     primary = _Scripted({k: (0.0, 0.0) for k in range(10)}, provisional_until=9)
@@ -101,7 +102,28 @@ def test_fallback_after_provisional_answers(
     for k in range(200):
         wf.step(k * 100_000_000)  # 10 Hz
         est = wf.estimate()
-        answered.append(est is not None and est.position[0] != 0.0)
+        assert est is not None and est.t_ns == k * 100_000_000
+        answered.append(bool(est.position[0] != 0.0))
     assert wf.fallback is not None  # provisional answers never dropped it
     assert answered.index(True) == first_fallback_epoch
     assert all(answered[first_fallback_epoch:])
+
+
+def test_provisional_pose_is_held_while_the_fallback_has_no_fix() -> None:
+    """test WithFallback: a fallback without fixes (Plaza1) leaves the last provisional
+    pose held until the primary starts, so no epoch after the first motion lacks a pose"""
+    from uwbfuse.estimator import WithFallback
+
+    script: dict[int, tuple[float, float] | None] = {k: (1.0, 2.0) for k in range(10)}
+    script.update({k: (5.0, 5.0) for k in range(150, 200)})  # the primary starts at 150
+    primary = _Scripted(script, provisional_until=9)
+    wf = WithFallback(primary, _Scripted({}))
+    got = []
+    for k in range(200):
+        wf.step(k * 100_000_000)
+        est = wf.estimate()
+        assert est is not None
+        got.append(tuple(est.position[:2]))
+    assert got[10:150] == [(1.0, 2.0)] * 140
+    assert got[150:] == [(5.0, 5.0)] * 50
+    assert wf.report()["held_provisional_epochs"] == 140

@@ -88,9 +88,13 @@ class WithFallback:
     towards dropping it, and the fallback keeps running beside them. When the primary falls
     silent after them (the vehicle moved before the primary could start), the fallback
     answers again at once if its last fix agreed with the provisional one within
-    `DISAGREE_M`; if not, its fixes are biased (Plaza2: WLS ~9 m off while the standstill
-    fix, which fits a common range scale, is 0.2 m off) and it answers only after
-    `PROVISIONAL_GRACE_S` of silence (the primary usually starts within a few seconds).
+    `DISAGREE_M`. If not, its fixes are biased (Plaza2: WLS ~9 m off while the standstill
+    fix, which fits a common range scale, is 0.2 m off): the last provisional position is
+    held instead (its error is at most the distance moved since) for up to
+    `PROVISIONAL_GRACE_S`, long enough for the primary to start (it needs a couple of
+    metres of motion), and the fallback answers after that. While the fallback has no fix
+    at all (Plaza1: one range every half second, no WLS fix) the position is held until
+    the primary starts. Every epoch from the first motion on has a pose (contract).
     `finish()` and `report()` are the primary's (the report counts the fallback epochs).
     """
 
@@ -99,8 +103,8 @@ class WithFallback:
     DISAGREE_M = 1.0
     """Horizontal distance between the fallback's and a provisional fix that discredits
     the fallback, m."""
-    PROVISIONAL_GRACE_S = 10.0
-    """Silence of the primary before a discredited fallback answers, s."""
+    PROVISIONAL_GRACE_S = 5.0
+    """Longest hold of the last provisional position in place of a discredited fallback, s."""
 
     def __init__(self, primary: Estimator, fallback: Estimator) -> None:
         self.primary = primary
@@ -110,6 +114,8 @@ class WithFallback:
         self._primary_streak = 0
         self._discredited = False
         self._silent_since: int | None = None
+        self._last_provisional: PoseEstimate | None = None
+        self.held_epochs = 0
 
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         self.primary.add_imu(t_ns, gyro, accel)
@@ -132,6 +138,7 @@ class WithFallback:
         if self._current is not None:
             self._silent_since = None
             if getattr(self.primary, "provisional", False):
+                self._last_provisional = self._current
                 if self.fallback is not None:
                     self.fallback.step(t_ns)
                     fb = self.fallback.estimate()
@@ -150,9 +157,14 @@ class WithFallback:
             self._silent_since = t_ns
         if self.fallback is not None:
             self.fallback.step(t_ns)
-            wait = self._discredited and (
-                t_ns - self._silent_since < self.PROVISIONAL_GRACE_S * NS_PER_S)
-            self._current = None if wait else self.fallback.estimate()
+            fb = self.fallback.estimate()
+            last = self._last_provisional
+            if last is not None and (fb is None or (self._discredited and (
+                    t_ns - self._silent_since < self.PROVISIONAL_GRACE_S * NS_PER_S))):
+                self._current = PoseEstimate(t_ns, last.position, last.quat_xyzw)
+                self.held_epochs += 1
+                return
+            self._current = fb
             if self._current is not None:
                 self.fallback_epochs += 1
 
@@ -165,6 +177,7 @@ class WithFallback:
     def report(self) -> dict[str, Any]:
         out = dict(self.primary.report())
         out["provisional_epochs"] = self.fallback_epochs
+        out["held_provisional_epochs"] = self.held_epochs
         return out
 
 
