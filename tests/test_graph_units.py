@@ -19,6 +19,8 @@ from uwbfuse.graph.uwb import (  # noqa: E402
     hmm_smooth,
     jump_log_likelihoods,
     los_subset_search,
+    residual_jumps,
+    residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
 
@@ -181,3 +183,23 @@ def test_plaza_converter_reads_the_gtsam_data():
     assert not log.ground_truth.has_orientation
     speed = np.abs(log.wheel.v)  # a golf cart: a few m/s
     assert 0.5 < np.median(speed) < 10.0
+
+
+def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
+    """Test the all-anchor residual jumps against `residual_jumps` per anchor, with and
+    without each anchor's previous range leading its chain."""
+    rng = np.random.default_rng(5)
+    n = 60
+    t = np.sort(rng.integers(0, 3 * NS, n))
+    a = rng.integers(0, 4, n)
+    r = rng.normal(0.0, 0.3, n)
+    lead_t = np.array([-NS, t[0] - 50_000_000, -10 * NS, t[0] - 1])
+    lead_r = np.array([0.1, -0.2, 0.3, 0.0])
+    got = residual_jumps_by_anchor(t, a, r)
+    led = residual_jumps_by_anchor(t, a, r, lead_t, lead_r)
+    for anc in range(4):
+        sel = np.flatnonzero(a == anc)
+        np.testing.assert_array_equal(got[sel], residual_jumps(t[sel], r[sel]))
+        want = residual_jumps(np.concatenate([[lead_t[anc]], t[sel]]),
+                              np.concatenate([[lead_r[anc]], r[sel]]))[1:]
+        np.testing.assert_array_equal(led[sel], want)

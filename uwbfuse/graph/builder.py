@@ -37,7 +37,7 @@ from uwbfuse.graph.uwb import (
     los_bias_key,
     nlos_state_factors,
     range_factor,
-    residual_jumps,
+    residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
 from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
@@ -534,21 +534,13 @@ class GraphBuilder:
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
     ) -> np.ndarray:
         """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one
-        (`uwb.residual_jumps`; the anchor's last range of the previous keyframe leads)."""
-        # one vectorised call for every anchor: each anchor's ranges in time order, led by
-        # its last range of the previous keyframe (whose own jump is dropped)
-        order = np.lexsort((t, a))
-        a_s = a[order]
-        starts = np.flatnonzero(np.concatenate([[True], a_s[1:] != a_s[:-1]]))
-        lead = a_s[starts]
-        t_s, r_s = t[order], r[order]
-        d = residual_jumps(np.insert(t_s, starts, self._jump_t[lead]),
-                           np.insert(r_s, starts, self._jump_r[lead]))
-        d = np.delete(d, starts + np.arange(len(starts)))
-        delta = np.empty(len(t))
-        delta[order] = d
-        ends = np.concatenate([starts[1:], [len(a_s)]]) - 1
-        self._jump_r[lead], self._jump_t[lead] = r_s[ends], t_s[ends]
+        (`uwb.residual_jumps_by_anchor`; the anchor's last range of the previous keyframe
+        leads)."""
+        delta = residual_jumps_by_anchor(t, a, r, self._jump_t, self._jump_r)
+        # each anchor's newest range leads its next keyframe's chain (t is time-sorted)
+        lead, last = np.unique(a[::-1], return_index=True)
+        last = len(a) - 1 - last
+        self._jump_r[lead], self._jump_t[lead] = r[last], t[last]
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(

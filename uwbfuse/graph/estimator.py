@@ -63,7 +63,7 @@ from uwbfuse.graph.uwb import (
     hmm_smooth,
     jump_log_likelihoods,
     los_subset_search,
-    residual_jumps,
+    residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -194,9 +194,7 @@ class GraphEstimator:
         if self._fallback_t is not None and t_ns - self._fallback_t < FALLBACK_RETRY_S * NS_PER_S:
             return None
         self._fallback_t = t_ns
-        t = np.concatenate([r[0] for r in self._pre_ranges])
-        a = np.concatenate([r[1] for r in self._pre_ranges])
-        z = np.concatenate([r[2] for r in self._pre_ranges])
+        t, a, z = self._pre_range_arrays()
         z_floor = planar_height(self.anchors, 0.0)
         state = solve_start(self.wheel, self.anchors, t, a, z,
                             np.asarray(self.cfg.extrinsics.tag_in_base, float), z_floor, t_ns)
@@ -205,6 +203,12 @@ class GraphEstimator:
                      "ranges at t=%.3f s", t_ns * 1e-9)
             self._fallback_used = True
         return state
+
+    def _pre_range_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ranges buffered before the start: stamps ns, anchor index, metres."""
+        return (np.concatenate([r[0] for r in self._pre_ranges]).astype(np.int64),
+                np.concatenate([r[1] for r in self._pre_ranges]).astype(np.int64),
+                np.concatenate([r[2] for r in self._pre_ranges]).astype(np.float64))
 
     def _standing_still(self, t_from: int, t_to: int) -> bool:
         """The wheels cover [t_from, t_to] and stood still through it (`start` STATIC_* limits)."""
@@ -228,7 +232,8 @@ class GraphEstimator:
 
         The heading is unknown at a standstill: the pose is reported with the map frame's
         orientation, and the base position is the tag's (the lever arm's direction is
-        unknown too). Once the wheels move, there is no pose until the graph starts.
+        unknown too). Once the wheels move this is None; `WithFallback` then decides
+        between the WLS fixes and holding the last standstill fix until the start.
         """
         if "imu" in self.streams or "wheel" not in self.streams or not self._pre_ranges:
             return None
@@ -241,8 +246,7 @@ class GraphEstimator:
             self._n_static += 1
             return PoseEstimate(t_ns, self._static.position, self._static.quat_xyzw)
         self._static_t = t_ns
-        a = np.concatenate([r[1] for r in self._pre_ranges]).astype(np.int64)
-        z = np.concatenate([r[2] for r in self._pre_ranges]).astype(np.float64)
+        _, a, z = self._pre_range_arrays()
         base_z = planar_height(self.anchors, 0.0)
         tag = np.asarray(self.cfg.extrinsics.tag_in_base, float)
         fix = solve_static(self.anchors, a, z, base_z + float(tag[2]))
@@ -391,10 +395,7 @@ class GraphEstimator:
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         g = np.empty(len(z))
         sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
-        delta = np.empty(len(z))
-        for sel in sels:
-            delta[sel] = residual_jumps(t[sel], r_los[sel])
-        jl = jump_log_likelihoods(delta, e - d, mix)  # one call for every anchor
+        jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
         for sel in sels:
             g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
                                 float(prior[sel[0]]))

@@ -154,6 +154,28 @@ def residual_jumps(t_ns: np.ndarray, r: np.ndarray) -> np.ndarray:
     return d
 
 
+def residual_jumps_by_anchor(
+    t_ns: np.ndarray, anchor: np.ndarray, r: np.ndarray,
+    lead_t: np.ndarray | None = None, lead_r: np.ndarray | None = None,
+) -> np.ndarray:
+    """`residual_jumps` of the ranges of several anchors at once, each anchor's ranges in
+    time order. `lead_t`, `lead_r` (indexed by anchor): each anchor's previous range (stamp
+    ns, residual m), which leads its chain; without them an anchor's first range has no
+    jump (NaN). One vectorised call instead of one per anchor."""
+    order = np.lexsort((t_ns, anchor))
+    a_s = anchor[order]
+    starts = np.flatnonzero(np.concatenate([[True], a_s[1:] != a_s[:-1]]))
+    if lead_t is None or lead_r is None:  # a lead too old to count: the first jump is NaN
+        lt = np.full(len(starts), np.iinfo(np.int64).min // 2, dtype=np.int64)
+        lr = np.zeros(len(starts))
+    else:
+        lt, lr = lead_t[a_s[starts]], lead_r[a_s[starts]]
+    d = residual_jumps(np.insert(t_ns[order], starts, lt), np.insert(r[order], starts, lr))
+    out = np.empty(len(t_ns))
+    out[order] = np.delete(d, starts + np.arange(len(starts)))
+    return out
+
+
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
     jump_ll: np.ndarray | None = None,
