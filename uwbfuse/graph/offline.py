@@ -35,6 +35,7 @@ from uwbfuse.graph.uwb import (
     los_bias_key,
     los_subset_search,
     nlos_state_factors,
+    range_factor_keyed,
 )
 from uwbfuse.streams import NS_PER_S
 
@@ -158,16 +159,13 @@ class _RangeFactors:
     def _factor(
         self, j: int, z: float, q: int, bias_key: int | None, step: float
     ) -> gtsam.NonlinearFactor:
-        """`uwb.range_factor` with the noise model shared per rounded sigma."""
+        """`uwb.range_factor_keyed` with the noise model shared per rounded sigma."""
         noise = self._noise.get(q)
         if noise is None:
             noise = range_noise(math.exp(q * step), self.uwb.robust_kernel,
                                 self.uwb.kernel_threshold)
             self._noise[q] = noise
-        if bias_key is not None:
-            return gtsam.RangeFactorWithTransformBias3D(
-                self.x[j], self.l[j], bias_key, z, noise, self.t_tag[j])
-        return gtsam.RangeFactorWithTransform3D(self.x[j], self.l[j], z, noise, self.t_tag[j])
+        return range_factor_keyed(self.x[j], self.l[j], bias_key, z, noise, self.t_tag[j])
 
 
 class _NlosStates:

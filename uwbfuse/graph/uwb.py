@@ -277,11 +277,18 @@ def range_factor(
 ) -> gtsam.NonlinearFactor:
     """Range from X(k) through `body_t_tag` to anchor L(a), plus the bias variable if any."""
     noise = range_noise(sigma, uwb.robust_kernel, uwb.kernel_threshold)
+    return range_factor_keyed(X(k), L(anchor), bias_key, float(measured), noise, body_t_tag)
+
+
+def range_factor_keyed(
+    pose_key: int, anchor_key: int, bias_key: int | None, measured: float,
+    noise: gtsam.noiseModel.Base, body_t_tag: gtsam.Pose3,
+) -> gtsam.NonlinearFactor:
+    """The native range factor of `range_factor` from keys and a ready noise model."""
     if bias_key is not None:
         return gtsam.RangeFactorWithTransformBias3D(
-            X(k), L(anchor), bias_key, float(measured), noise, body_t_tag
-        )
-    return gtsam.RangeFactorWithTransform3D(X(k), L(anchor), float(measured), noise, body_t_tag)
+            pose_key, anchor_key, bias_key, measured, noise, body_t_tag)
+    return gtsam.RangeFactorWithTransform3D(pose_key, anchor_key, measured, noise, body_t_tag)
 
 
 def los_bias_key(anchor: int, estimate_bias: bool, g: float = 0.0) -> int | None:
