@@ -172,7 +172,8 @@ class GraphConfig(_Section):
         0.3, gt=0, description="prior std of the range bias common to all anchors, m"
     )
     range_bias_anchor_sigma: float = Field(
-        0.05, gt=0, description="prior std of each anchor's range bias around the common one, m"
+        0.05, gt=0, description="prior std of each anchor's range bias around the common "
+        "one, m (batch; the online graph holds it within the smaller of this and 0.02 m)"
     )
     @field_validator("imu_noise_inflation")
     @classmethod
