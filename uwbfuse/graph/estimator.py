@@ -34,6 +34,7 @@ is logged and counted in `report()`; it never raises.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from collections import deque
@@ -76,6 +77,9 @@ SEARCH = True  # discrete LOS/NLOS hypothesis search in the review (see `_review
 SEARCH_SWITCH_NATS = 10.0  # log-likelihood gain of a better LOS/NLOS assignment
 SEARCH_PERSIST = 3  # ... in this many consecutive reviews before it is adopted
 REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no longer reviewed
+# age of a keyframe's ranges when their residuals at the smoothed estimate go into the LOS
+# sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
+SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
 FALLBACK_RETRY_S = 1.0  # s of data between two fallback attempts
@@ -354,6 +358,9 @@ class GraphEstimator:
         if not batches:
             return
         mix = b.mixture
+        if b.smoothed_sigma_los is not None:  # residuals at the smoothed estimate
+            mix = copy.copy(mix)
+            mix.sigma_los = b.smoothed_sigma_los
         anchor = np.concatenate([rb.anchor for rb in batches])
         z = np.concatenate([rb.z for rb in batches])
         seg = np.concatenate([rb.seg for rb in batches])
@@ -400,9 +407,13 @@ class GraphEstimator:
             g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
                                 float(prior[sel[0]]))
         off = 0
+        stat_age = now - round(SMOOTHED_STAT_AGE_S * NS_PER_S)
         for rb in batches:
             n = len(rb.z)
             gb, eb = g[off:off + n], e[off:off + n]
+            if not rb.counted and b.time_of(rb.ka) <= stat_age:
+                rb.counted = True
+                b.add_smoothed_residuals(r_los[off:off + n], gb)
             off += n
             changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if len(changed) == 0:
