@@ -152,6 +152,29 @@ def imu_inflation(setting: float | str, has_wheel: bool) -> float:
     return float(setting)
 
 
+class ResidualWindow:
+    """The last `size` range residuals and responsibilities, handed out every `every`."""
+
+    def __init__(self, size: int = 3000, every: int = 200) -> None:
+        self.size, self.every = size, every
+        self._r: list[np.ndarray] = []
+        self._g: list[np.ndarray] = []
+        self._since = 0
+
+    def add(self, r: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Append; return (residuals, responsibilities) of the window when one is due."""
+        self._r.append(r)
+        self._g.append(g)
+        self._since += len(g)
+        if self._since < self.every:
+            return None
+        rr = np.concatenate(self._r)[-self.size:]
+        gg = np.concatenate(self._g)[-self.size:]
+        self._r, self._g = [rr], [gg]
+        self._since = 0
+        return rr, gg
+
+
 def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> float | None:
     """LOS sigma (m) from the MAD of LOS residuals `r` (m; responsibility g < 0.5, |r| < 1 m),
     the prior counting as n0 ranges; within [SIGMA_LOS_MIN, prior]."""
@@ -208,9 +231,7 @@ class GraphBuilder:
         # LOS sigma of the range factors, from residuals at the smoothed estimate (the
         # mixture's is the one-step prediction's, wider by the prediction error)
         self.smoothed_sigma_los: float | None = None
-        self._sm_resid: list[np.ndarray] = []
-        self._sm_resp: list[np.ndarray] = []
-        self._sm_since = 0
+        self._smoothed_window = ResidualWindow()
         m = len(anchors)
         self.anchor_p = np.full(m, self.mixture.p_nlos)
         self.range_bias = np.zeros(m)
@@ -262,9 +283,7 @@ class GraphBuilder:
         self.jumps = True  # use residual jumps between consecutive ranges in the HMM
         self._jump_r = np.zeros(m)  # per anchor: last range residual (m) and its stamp
         self._jump_t = np.full(m, np.iinfo(np.int64).min // 2, dtype=np.int64)
-        self._resid: list[np.ndarray] = []
-        self._resp: list[np.ndarray] = []
-        self._since_mstep = 0
+        self._predicted_window = ResidualWindow()
 
     # ---------------------------------------------------------------- data
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
@@ -654,15 +673,10 @@ class GraphBuilder:
 
     def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:
         """Adapt the noise model to the last few thousand ranges (prior: the config)."""
-        self._resid.append(np.stack([r_los, r_nlos], axis=1))
-        self._resp.append(g)
-        self._since_mstep += len(g)
-        if self._since_mstep < 200:
+        window = self._predicted_window.add(np.stack([r_los, r_nlos], axis=1), g)
+        if window is None:
             return
-        rr = np.concatenate(self._resid)[-3000:]
-        gg = np.concatenate(self._resp)[-3000:]
-        self._resid, self._resp = [rr], [gg]
-        self._since_mstep = 0
+        rr, gg = window
         self.mixture.m_step(rr[:, 0], rr[:, 1], gg, self.mixture_prior, n0=200.0)
         s = robust_los_sigma(rr[:, 0], gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
@@ -675,15 +689,10 @@ class GraphBuilder:
         Measured against the one-step residuals (LOS ranges, MAD sigma): room 0.025 against
         0.027, ISAS-Walk1 0.040 against 0.087 (IMU-only prediction). Classifying new ranges
         needs the wider one, the factors the narrower."""
-        self._sm_resid.append(r_los)
-        self._sm_resp.append(g)
-        self._sm_since += len(g)
-        if self._sm_since < 200:
+        window = self._smoothed_window.add(r_los, g)
+        if window is None:
             return
-        rr = np.concatenate(self._sm_resid)[-3000:]
-        gg = np.concatenate(self._sm_resp)[-3000:]
-        self._sm_resid, self._sm_resp = [rr], [gg]
-        self._sm_since = 0
+        rr, gg = window
         s = robust_los_sigma(rr, gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.smoothed_sigma_los = s
