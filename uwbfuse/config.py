@@ -173,7 +173,8 @@ class GraphConfig(_Section):
     )
     range_bias_anchor_sigma: float = Field(
         0.05, gt=0, description="prior std of each anchor's range bias around the common "
-        "one, m (batch; the online graph holds it within the smaller of this and 0.02 m)"
+        "one, m (batch's seeding pass; the online graph and batch's LM rounds that free the "
+        "biases hold it within the smaller of this and 0.02 m)"
     )
     @field_validator("imu_noise_inflation")
     @classmethod
