@@ -526,6 +526,6 @@ def make(
         raise EstimatorError(f"dead reckoning has no method {method.value!r}")
     if anchors is None or len(anchors) == 0 or "uwb" not in streams:
         return inner
-    from uwbfuse.positioning.initialisation import Initialiser
+    from uwbfuse.filters.base import default_initialiser
 
-    return AnchoredDeadReckoning(inner, Initialiser(config, anchors, streams))
+    return AnchoredDeadReckoning(inner, default_initialiser(config, anchors, streams))

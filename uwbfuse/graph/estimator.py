@@ -3,13 +3,14 @@
 
 Data arrive in time-sorted batches (`add_imu`, `add_wheel`, `add_ranges`). Until the
 sensors determine a start (`positioning.initialisation.Initialiser`; for wheeled logs whose
-sparse round-robin ranges give it no fixes, the graph's own `start.solve_start` after a few
-seconds), `estimate()` is None, except that a wheeled log without an IMU standing still
-since its first range gets a provisional position from all its ranges with a common range
-scale (`start.solve_static`). From then on each `step(t)` builds every keyframe with time
-<= t (`GraphBuilder`) and feeds them to a fixed-lag iSAM2 (`OnlineSmoother`) every
-`graph.update_every` keyframes; `estimate()` is the newest keyframe (solved or predicted
-from the last solved one by wheels/IMU) composed with the motion up to t: causal.
+sparse round-robin ranges give it no fixes, `start.solve_start` after a few seconds: both
+through `sparse_start.SparseStartInitialiser`, which the filters share), `estimate()` is
+None, except that a wheeled log without an IMU standing still since its first range gets a
+provisional position from all its ranges with a common range scale (`start.solve_static`).
+From then on each `step(t)` builds every keyframe with time <= t (`GraphBuilder`) and
+feeds them to a fixed-lag iSAM2 (`OnlineSmoother`) every `graph.update_every` keyframes;
+`estimate()` is the newest keyframe (solved or predicted from the last solved one by
+wheels/IMU) composed with the motion up to t: causal.
 After every update the LOS/NLOS responsibilities of the ranges in the lag window are
 recomputed against the smoothed keyframes (forward-backward per anchor over the window);
 ranges that changed class get their factors replaced (iSAM2 factor removal), a fixed-lag
@@ -47,19 +48,12 @@ from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate
 from uwbfuse.graph import offline
-from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch, planar_height
+from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
-from uwbfuse.graph.start import (
-    STATIC_MAX_DRIFT_M,
-    STATIC_MAX_SPEED,
-    STATIC_MAX_TURN_RAD,
-    STATIC_MAX_YAW_RATE,
-    solve_start,
-    solve_static,
-)
+from uwbfuse.graph.sparse_start import SparseStartInitialiser
 from uwbfuse.graph.uwb import (
     hmm_smooth,
     jump_log_likelihoods,
@@ -81,9 +75,6 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 # sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
-FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the graph's own start solve
-FALLBACK_RETRY_S = 1.0  # s of data between two fallback attempts
-STATIC_WHEEL_GAP_NS = 500_000_000  # wheel data must reach this close to a standstill's ends
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -100,7 +91,7 @@ class GraphEstimator:
         config: Config,
         anchors: AnchorMap,
         streams: frozenset[str],
-        initialiser: Any,
+        initialiser: SparseStartInitialiser,
     ) -> None:
         self.method = method
         self.cfg = config
@@ -111,7 +102,6 @@ class GraphEstimator:
         self.wheel = WheelTrack()
         self.builder: GraphBuilder | None = None
         self.smoother: OnlineSmoother | None = None
-        self._pre_ranges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._chunk = BATCH_CHUNK if method is Method.BATCH else config.graph.update_every
         self._pending: list[Increment] = []
         self._last_t: int | None = None
@@ -134,12 +124,8 @@ class GraphEstimator:
         self._n_switches = 0
         self._hyp_key: tuple | None = None
         self._hyp_count = 0
-        self._fallback_t: int | None = None
-        self._fallback_used = False
         self._batch_wall = 0.0
         self._static: PoseEstimate | None = None  # standstill fix before the start
-        self._static_t: int | None = None
-        self._n_static = 0
 
     # ------------------------------------------------------------------ input
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -158,7 +144,6 @@ class GraphEstimator:
         """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
         if self.builder is None:
             self.init.add_ranges(t_ns, anchor, rng)
-            self._pre_ranges.append((np.asarray(t_ns), np.asarray(anchor), np.asarray(rng)))
         else:
             self.builder.add_ranges(t_ns, anchor, rng)
 
@@ -170,9 +155,8 @@ class GraphEstimator:
         if self.builder is None:
             state = self.init.try_initialise(int(t_ns))
             if state is None:
-                state = self._fallback_start(int(t_ns))
-            if state is None:
-                self._static = self._static_fix(int(t_ns))
+                fix = self.init.standstill_fix(int(t_ns))
+                self._static = None if fix is None else PoseEstimate(int(t_ns), *fix)
                 return
             self._static = None
             self._start(state)
@@ -184,91 +168,15 @@ class GraphEstimator:
             if len(self._pending) >= self._chunk:
                 self._flush()
 
-    def _fallback_start(self, t_ns: int) -> Any:
-        """Wheeled logs without an IMU whose ranges give no fixes: solve the start here.
-
-        Tried every FALLBACK_RETRY_S of data once the initialiser has had
-        FALLBACK_AFTER_S seconds of ranges without answering (see `graph.start`).
-        """
-        if "imu" in self.streams or "wheel" not in self.streams or not self._pre_ranges:
-            return None
-        t_first = int(self._pre_ranges[0][0][0])
-        if t_ns - t_first < FALLBACK_AFTER_S * NS_PER_S:
-            return None
-        if self._fallback_t is not None and t_ns - self._fallback_t < FALLBACK_RETRY_S * NS_PER_S:
-            return None
-        self._fallback_t = t_ns
-        t, a, z = self._pre_range_arrays()
-        z_floor = planar_height(self.anchors, 0.0)
-        state = solve_start(self.wheel, self.anchors, t, a, z,
-                            np.asarray(self.cfg.extrinsics.tag_in_base, float), z_floor, t_ns)
-        if state is not None:
-            log.info("initialiser gave no start: fallback start from wheel track and raw "
-                     "ranges at t=%.3f s", t_ns * 1e-9)
-            self._fallback_used = True
-        return state
-
-    def _pre_range_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The ranges buffered before the start: stamps ns, anchor index, metres."""
-        return (np.concatenate([r[0] for r in self._pre_ranges]).astype(np.int64),
-                np.concatenate([r[1] for r in self._pre_ranges]).astype(np.int64),
-                np.concatenate([r[2] for r in self._pre_ranges]).astype(np.float64))
-
-    def _standing_still(self, t_from: int, t_to: int) -> bool:
-        """The wheels cover [t_from, t_to] and stood still through it (`start` STATIC_* limits)."""
-        w = self.wheel
-        gap = STATIC_WHEEL_GAP_NS
-        if len(w) < 2 or w.t[0] > t_from + gap or w.t[-1] < t_to - gap:
-            return False
-        i0, i1 = np.searchsorted(w.t, [t_from, t_to])
-        seg = slice(max(i0 - 1, 0), min(i1 + 1, len(w)))
-        if (np.max(np.abs(w.v[seg])) > STATIC_MAX_SPEED
-                or np.max(np.abs(w.w[seg])) > STATIC_MAX_YAW_RATE):
-            return False
-        p = w.pose[seg]
-        drift = float(np.max(np.hypot(p[:, 0] - p[0, 0], p[:, 1] - p[0, 1])))
-        turn = float(np.max(np.abs(p[:, 2] - p[0, 2])))
-        return drift <= STATIC_MAX_DRIFT_M and turn <= STATIC_MAX_TURN_RAD
-
-    def _static_fix(self, t_ns: int) -> PoseEstimate | None:
-        """Provisional pose of a wheeled log without an IMU that has not moved since its
-        first range (`start.solve_static`, re-solved every FALLBACK_RETRY_S), else None.
-
-        The heading is unknown at a standstill: the pose is reported with the map frame's
-        orientation, and the base position is the tag's (the lever arm's direction is
-        unknown too). Once the wheels move this is None; `WithFallback` then decides
-        between the WLS fixes and holding the last standstill fix until the start.
-        """
-        if "imu" in self.streams or "wheel" not in self.streams or not self._pre_ranges:
-            return None
-        t_first = int(self._pre_ranges[0][0][0])
-        if not self._standing_still(t_first, t_ns):
-            return None
-        if self._static_t is not None and t_ns - self._static_t < FALLBACK_RETRY_S * NS_PER_S:
-            if self._static is None:  # the last attempt failed: wait for the next one
-                return None
-            self._n_static += 1
-            return PoseEstimate(t_ns, self._static.position, self._static.quat_xyzw)
-        self._static_t = t_ns
-        _, a, z = self._pre_range_arrays()
-        base_z = planar_height(self.anchors, 0.0)
-        tag = np.asarray(self.cfg.extrinsics.tag_in_base, float)
-        fix = solve_static(self.anchors, a, z, base_z + float(tag[2]))
-        if fix is None:
-            return None
-        self._n_static += 1
-        return PoseEstimate(t_ns, np.array([fix[0][0], fix[0][1], base_z]),
-                            np.array([0.0, 0.0, 0.0, 1.0]))
-
     def _start(self, state: Any) -> None:
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is Method.BATCH,
         )
         self._init_t = int(state.t_ns)
-        for t, a, r in self._pre_ranges:
+        for t, a, r in self.init.pre_ranges:
             self.builder.add_ranges(t, a, r)
-        self._pre_ranges.clear()
+        self.init.pre_ranges.clear()
         self.smoother = OnlineSmoother(self.cfg.graph.lag)
         self._pending.append(self.builder.first())
         self._flush()
@@ -643,14 +551,14 @@ class GraphEstimator:
     def report(self) -> dict[str, Any]:
         """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
         out: dict[str, Any] = {"method": self.method.value}
-        out["standstill_fix_epochs"] = self._n_static
+        out["standstill_fix_epochs"] = self.init.standstill_epochs
         b = self.builder
         if b is None:
             out["initialised"] = False
             return out
         out["initialised"] = True
         out["init_t_ns"] = self._init_t
-        out["fallback_start"] = self._fallback_used
+        out["fallback_start"] = self.init.fallback_used
         out["keyframes"] = b.k + 1
         lat = np.asarray(self._update_latency)
         if len(lat):
@@ -708,5 +616,6 @@ def make(
         raise EstimatorError(f"method {method.value} needs UWB ranges and an anchor map")
     from uwbfuse.positioning.initialisation import Initialiser
 
-    init = Initialiser(config, anchors, streams)
+    init = SparseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
+                                  streams)
     return GraphEstimator(method, config, anchors, streams, init)
