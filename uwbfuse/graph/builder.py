@@ -672,7 +672,8 @@ class GraphBuilder:
         return key
 
     def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:
-        """Adapt the noise model to the last few thousand ranges (prior: the config)."""
+        """Adapt the noise model to the last few thousand one-step residuals (prior: the
+        config); sigma_los from their MAD (`robust_los_sigma`)."""
         window = self._predicted_window.add(np.stack([r_los, r_nlos], axis=1), g)
         if window is None:
             return

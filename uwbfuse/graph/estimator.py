@@ -601,6 +601,8 @@ class GraphEstimator:
         out["anchors"] = anchors
         out["nlos_mixture"] = {"sigma_los": mix.sigma_los, "mu_nlos": mix.mu_nlos,
                                "sigma_nlos": mix.sigma_nlos, "p_nlos": mix.p_nlos}
+        if self._batch is None:  # online: sigma_los is the one-step prediction's
+            out["nlos_mixture"]["sigma_los_smoothed"] = b.smoothed_sigma_los
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out
