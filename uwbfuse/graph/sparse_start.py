@@ -6,8 +6,8 @@ levelling, heading from the first motion) and adds, for wheeled logs without an 
 round-robin ranges give no multilateration fixes (Plaza1: one anchor every half second):
 
 - `try_initialise`: after FALLBACK_AFTER_S seconds of ranges without a start, the start
-  solved from the wheel track and the raw ranges (`start.solve_start`, every
-  FALLBACK_RETRY_S of data);
+  solved from the wheel track and the last START_WINDOW_S of raw ranges (`start.solve_start`,
+  every FALLBACK_RETRY_S of data, backing off to MAX_RETRY_S while full solves fail);
 - `standstill_fix`: while the wheels have stood still since the first range, the position
   fitted to all ranges so far with a common range scale (`start.solve_static`, map frame,
   heading unknown).
@@ -26,12 +26,14 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.graph.builder import planar_height
 from uwbfuse.graph.start import (
+    MIN_TRAVEL_M,
     STATIC_MAX_DRIFT_M,
     STATIC_MAX_SPEED,
     STATIC_MAX_TURN_RAD,
     STATIC_MAX_YAW_RATE,
     solve_start,
     solve_static,
+    track_travel,
 )
 from uwbfuse.graph.wheel import WheelTrack
 from uwbfuse.streams import NS_PER_S, AnchorMap
@@ -41,6 +43,14 @@ log = logging.getLogger(__name__)
 FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the wheel-track start solve
 FALLBACK_RETRY_S = 1.0  # s of data between two attempts (start solve, standstill fix)
 STATIC_WHEEL_GAP_NS = 500_000_000  # wheel data must reach this close to a standstill's ends
+# s of the newest ranges a start solve fits: keeps each attempt bounded on a log that never
+# starts (every FALLBACK_RETRY_S over all ranges so far would grow quadratically); Plaza's
+# starts use 50 s of ranges at most
+START_WINDOW_S = 120.0
+# after each failed start solve with the wheels past MIN_TRAVEL_M the wait to the next
+# doubles, up to this (s): a log that never starts (wrong anchor map, say) spent 455 s of
+# start solves on 600 s of data at one attempt per second
+MAX_RETRY_S = 30.0
 
 
 class SparseStartInitialiser:
@@ -67,6 +77,7 @@ class SparseStartInitialiser:
         self._had_fix = False
         self.standstill_epochs = 0
         self._fallback_t: int | None = None
+        self._retry_s = FALLBACK_RETRY_S
         self._static: tuple[np.ndarray, np.ndarray] | None = None  # position, quat_xyzw
         self._static_t: int | None = None
 
@@ -97,10 +108,12 @@ class SparseStartInitialiser:
         t_first = int(self.pre_ranges[0][0][0])
         if t_ns - t_first < FALLBACK_AFTER_S * NS_PER_S:
             return None
-        if self._fallback_t is not None and t_ns - self._fallback_t < FALLBACK_RETRY_S * NS_PER_S:
+        if self._fallback_t is not None and t_ns - self._fallback_t < self._retry_s * NS_PER_S:
             return None
         self._fallback_t = t_ns
         t, a, z = self.pre_range_arrays()
+        keep = t >= t_ns - round(START_WINDOW_S * NS_PER_S)
+        t, a, z = t[keep], a[keep], z[keep]
         z_floor = planar_height(self.anchors, 0.0)
         state = solve_start(self.wheel, self.anchors, t, a, z,
                             np.asarray(self.cfg.extrinsics.tag_in_base, float), z_floor, t_ns)
@@ -108,6 +121,8 @@ class SparseStartInitialiser:
             log.info("initialiser gave no start: fallback start from wheel track and raw "
                      "ranges at t=%.3f s", t_ns * 1e-9)
             self.fallback_used = True
+        elif track_travel(self.wheel, t_ns) >= MIN_TRAVEL_M:  # a full solve failed
+            self._retry_s = min(2.0 * self._retry_s, MAX_RETRY_S)
         return state
 
     def pre_range_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

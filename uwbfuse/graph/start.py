@@ -37,6 +37,12 @@ def _rot_z(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def track_travel(track: WheelTrack, t_now: int) -> float:
+    """Path length (m) the wheels have covered up to t_now."""
+    upto = track.t <= t_now
+    return float(np.sum(np.abs(track.v[upto])[1:] * np.diff(track.t[upto]) / 1e9))
+
+
 def solve_start(
     track: WheelTrack,
     anchors: AnchorMap,
@@ -54,9 +60,7 @@ def solve_start(
     t_r, a_r, z_r = t_r[sel], a_r[sel], z_r[sel]
     if len(t_r) < MIN_RANGES or len(np.unique(a_r)) < 3:
         return None
-    v_abs = np.abs(track.v[track.t <= t_now])
-    travel = float(np.sum(v_abs[1:] * np.diff(track.t[track.t <= t_now]) / 1e9))
-    if travel < MIN_TRAVEL_M:
+    if track_travel(track, t_now) < MIN_TRAVEL_M:
         return None
     d = track.at(t_r)  # (n,3) x, y, theta in the track frame
     c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
