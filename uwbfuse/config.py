@@ -174,7 +174,8 @@ class GraphConfig(_Section):
     range_bias_anchor_sigma: float = Field(
         0.05, gt=0, description="prior std of each anchor's range bias around the common "
         "one, m (batch's seeding pass; the online graph and batch's LM rounds that free the "
-        "biases hold it within the smaller of this and 0.02 m)"
+        "biases hold it within the smaller of this and 0.02 m, unless it is set above the "
+        "default: anchors known to differ by more)"
     )
     @field_validator("imu_noise_inflation")
     @classmethod

@@ -26,7 +26,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from uwbfuse.config import Config
+from uwbfuse.config import Config, GraphConfig
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
@@ -150,6 +150,15 @@ def imu_inflation(setting: float | str, has_wheel: bool) -> float:
     if setting == "auto":
         return IMU_INFLATION_WITH_WHEELS if has_wheel else IMU_INFLATION_WITHOUT_WHEELS
     return float(setting)
+
+
+def held_anchor_bias_sigma(configured: float, cap: float) -> float:
+    """Per-anchor range bias std (m) where the graph holds it tighter than configured: the
+    smaller of `configured` and `cap`, unless `configured` was widened past the default
+    (anchors known to differ by more: then it is used as given)."""
+    if configured > GraphConfig.model_fields["range_bias_anchor_sigma"].default:
+        return configured
+    return min(configured, cap)
 
 
 class ResidualWindow:
@@ -451,7 +460,7 @@ class GraphBuilder:
             # seed moved Plaza1's batch 0.42 -> 0.72 m, ISAS-Walk1's 0.124 -> 0.144 m)
             s_a = self.g.range_bias_anchor_sigma
             if not self.record:
-                s_a = min(s_a, ONLINE_ANCHOR_BIAS_SIGMA)
+                s_a = held_anchor_bias_sigma(s_a, ONLINE_ANCHOR_BIAS_SIGMA)
             inc.graph.add(gtsam.PriorFactorDouble(
                 C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_on)))
             for a in range(len(self.anchors)):

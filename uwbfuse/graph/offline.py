@@ -26,6 +26,7 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config, UwbConfig
+from uwbfuse.graph.builder import held_anchor_bias_sigma
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
@@ -78,10 +79,12 @@ BATCH_ANCHOR_BIAS_SIGMA = 0.02
 def _cap_anchor_bias_sigma(graph: gtsam.NonlinearFactorGraph, n_anchor: int,
                            configured: float) -> None:
     """Tighten the configured C-D(a) priors (std `configured`, m) of `graph` to
-    BATCH_ANCHOR_BIAS_SIGMA by adding the complementary prior (information adds up)."""
-    if configured <= BATCH_ANCHOR_BIAS_SIGMA:
+    `builder.held_anchor_bias_sigma` by adding the complementary prior (information adds
+    up)."""
+    held = held_anchor_bias_sigma(configured, BATCH_ANCHOR_BIAS_SIGMA)
+    if held >= configured:
         return
-    extra = (BATCH_ANCHOR_BIAS_SIGMA**-2 - configured**-2) ** -0.5
+    extra = (held**-2 - configured**-2) ** -0.5
     noise = gtsam.noiseModel.Isotropic.Sigma(1, extra)
     for a in range(n_anchor):
         graph.add(gtsam.BetweenFactorDouble(C, D(a), 0.0, noise))
