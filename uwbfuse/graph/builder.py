@@ -25,6 +25,7 @@ from typing import Any
 
 import gtsam
 import numpy as np
+from scipy.stats import median_abs_deviation
 
 from uwbfuse.config import Config, GraphConfig
 from uwbfuse.graph import imu as imu_mod
@@ -190,7 +191,7 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
     r = r[(g < 0.5) & (np.abs(r) < 1.0)]
     if len(r) < 20:
         return None
-    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    mad = float(median_abs_deviation(r, scale="normal"))
     s = math.sqrt((len(r) * mad**2 + n0 * prior**2) / (len(r) + n0))
     return min(max(s, SIGMA_LOS_MIN), prior)
 
