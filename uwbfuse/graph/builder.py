@@ -25,7 +25,6 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from scipy.stats import median_abs_deviation
 
 from uwbfuse.config import Config, GraphConfig
 from uwbfuse.graph import imu as imu_mod
@@ -185,13 +184,19 @@ class ResidualWindow:
         return rr, gg
 
 
+# MAD -> standard deviation of a normal distribution (1 / Phi^-1(3/4))
+NORMAL_MAD_SCALE = 1.482602218505602
+
+
 def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> float | None:
     """LOS sigma (m) from the MAD of LOS residuals `r` (m; responsibility g < 0.5, |r| < 1 m),
     the prior counting as n0 ranges; within [SIGMA_LOS_MIN, prior]."""
     r = r[(g < 0.5) & (np.abs(r) < 1.0)]
     if len(r) < 20:
         return None
-    mad = float(median_abs_deviation(r, scale="normal"))
+    # scipy.stats.median_abs_deviation gives the same value but costs ~275 us a call
+    # against ~30 us (its array-API wrapper); called twice per keyframe it was 12 % of isam2
+    mad = NORMAL_MAD_SCALE * float(np.median(np.abs(r - np.median(r))))
     s = math.sqrt((len(r) * mad**2 + n0 * prior**2) / (len(r) + n0))
     return min(max(s, SIGMA_LOS_MIN), prior)
 
