@@ -80,6 +80,12 @@ class ImuBuffer:
         return len(self._t)
 
     @property
+    def first_t(self) -> int | None:
+        """Stamp (ns) of the oldest sample kept, None when empty."""
+        self._flush()
+        return int(self._t[0]) if len(self._t) else None
+
+    @property
     def last_t(self) -> int | None:
         self._flush()
         return int(self._t[-1]) if len(self._t) else None
