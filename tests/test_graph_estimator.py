@@ -268,3 +268,26 @@ def test_batch_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     without = _ate(estimate(sim.log, Method.BATCH, Config()).trajectory, sim.log)
     assert with_search < 0.17
     assert without > 1.15 * with_search
+
+
+def test_batch_calibrates_a_wheel_speed_scale_error():
+    """Test that batch's wheel-scale calibration finds encoders reading 3 % fast and beats
+    the uncalibrated batch.
+
+    Measured (factory, seed 0, 60 s; the simulated encoders already read v x 1.008, so v
+    reads x 1.038 in all): 2-D ATE 0.049 m uncalibrated, 0.030 m calibrated, v scale 0.971
+    (truth 0.963), omega 1.018 (truth 1.019)."""
+    sim = simulate_with_truth("factory", 60.0, 0)
+    log = replace(sim.log, wheel=replace(sim.log.wheel, v=sim.log.wheel.v * 1.03))
+    truth = 1.0 / (1.03 * sim.wheel_scale[0]), 1.0 / sim.wheel_scale[1]
+    off = Config()
+    off.graph = off.graph.model_copy(update={"estimate_wheel_scale": False})
+    res_off = estimate(log, Method.BATCH, off)
+    res_on = estimate(log, Method.BATCH, Config())
+    assert "wheel_scale" not in res_off.report["batch"]
+    est = res_on.report["batch"]["wheel_scale"]
+    assert est["v"] == pytest.approx(truth[0], abs=0.015)
+    assert est["omega"] == pytest.approx(truth[1], abs=0.01)
+    ate_off = evaluate(res_off.trajectory, log.ground_truth).ate_2d.rmse
+    ate_on = evaluate(res_on.trajectory, log.ground_truth).ate_2d.rmse
+    assert ate_on < 0.75 * ate_off

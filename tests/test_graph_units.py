@@ -203,3 +203,44 @@ def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
         want = residual_jumps(np.concatenate([[lead_t[anc]], t[sel]]),
                               np.concatenate([[lead_r[anc]], r[sel]]))[1:]
         np.testing.assert_array_equal(led[sel], want)
+
+
+def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors():
+    """Test that `offline._WheelScale` fits (v, omega) scales of 1.03 and 0.98 from a track
+    whose odometry read 1/1.03 of the distance and 1/0.98 of the turn, and that `apply`
+    replaces the wheel factors at their indices with the scaled deltas."""
+    from uwbfuse.graph.keys import X
+    from uwbfuse.graph.offline import _WheelScale
+    from uwbfuse.graph.wheel import se2_between, se2_compose
+
+    rng = np.random.default_rng(0)
+    n = 400
+    step = np.column_stack([np.full(n - 1, 0.1), np.zeros(n - 1),
+                            0.05 * np.sin(np.arange(n - 1) / 20.0)])  # (x, y, theta) per kf
+    poses = [np.zeros(3)]
+    for d in step:
+        poses.append(se2_compose(poses[-1], d))
+    poses = np.array(poses)
+    values = gtsam.Values()
+    graph = gtsam.NonlinearFactorGraph()
+    cov = np.diag([1e-4, 1e-4, 1e-5])
+    deltas = []
+    for k in range(n):
+        x, y, th = poses[k]
+        values.insert(X(k), gtsam.Pose3(gtsam.Rot3.Yaw(th), np.array([x, y, 0.0])))
+    for k in range(n - 1):
+        true = se2_between(poses[k], poses[k + 1])
+        raw = true / np.array([1.03, 1.03, 0.98]) + rng.normal(0, [1e-3, 1e-3, 1e-4])
+        deltas.append(raw)
+        graph.add(between_factor(X(k), X(k + 1), raw, cov, (0.01, 0.01, 0.01)))
+    wheel = {"k": np.arange(n - 1), "delta": np.array(deltas),
+             "cov": np.repeat(cov[None], n - 1, axis=0), "index": np.arange(n - 1)}
+    ws = _WheelScale(wheel)
+    ws.refit(values, n)
+    assert ws.scale == pytest.approx([1.03, 0.98], abs=0.002)
+    assert ws.apply([graph])
+    f = graph.at(5)
+    assert list(f.keys()) == [X(5), X(6)]
+    assert f.error(values) < 0.5 * between_factor(
+        X(5), X(6), deltas[5], cov, (0.01, 0.01, 0.01)).error(values)
+    assert not ws.apply([graph])  # unchanged scales rebuild nothing

@@ -201,6 +201,10 @@ class GraphConfig(_Section):
     range_scale_sigma: float = Field(
         0.05, gt=0, description="prior std of range scale factors (1 = none)"
     )
+    estimate_wheel_scale: bool = Field(
+        True, description="batch: calibrate the wheel odometry's speed and yaw-rate scale "
+        "factors (wheel radius and track errors) against the smoothed track"
+    )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
     nlos_mean: float = Field(
         0.3, gt=0, description="mean NLOS range excess over the anchor's LOS offset, metres"

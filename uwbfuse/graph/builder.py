@@ -135,6 +135,27 @@ class RangeRecords:
                 ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online", "r_online")}
 
 
+@dataclass
+class WheelRecords:
+    """Every wheel factor of the recorded (batch) graph, so that batch can rebuild them with
+    a calibrated odometry scale: keyframe pair (k, k + 1), planar delta (x m, y m, theta
+    rad) in the base frame at k as integrated (scale 1), its (x, y, theta) covariance, and
+    the factor's index in `GraphBuilder.full_graph`."""
+
+    k: list[int] = field(default_factory=list)
+    delta: list[np.ndarray] = field(default_factory=list)
+    cov: list[np.ndarray] = field(default_factory=list)
+    index: list[int] = field(default_factory=list)
+    out_of_plane: tuple[float, float, float] = (0.01, 0.01, 0.01)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        if not self.k:
+            return {"k": np.zeros(0, np.int64), "delta": np.zeros((0, 3)),
+                    "cov": np.zeros((0, 3, 3)), "index": np.zeros(0, np.int64)}
+        return {"k": np.asarray(self.k, np.int64), "delta": np.asarray(self.delta),
+                "cov": np.asarray(self.cov), "index": np.asarray(self.index, np.int64)}
+
+
 # `graph.imu_noise_inflation = "auto"`: with wheels the wheel factor carries the motion
 # between ranges and a looser IMU loses on the simulated vehicles (factory batch 0.023 ->
 # 0.037 m at 30); without wheels the IMU alone carries it, and on the real handheld
@@ -274,6 +295,7 @@ class GraphBuilder:
         self._rz: list[np.ndarray] = []
         self.record = record
         self.records = RangeRecords()
+        self.wheel_records = WheelRecords()
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         self.full_values = gtsam.Values() if record else None
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
@@ -518,6 +540,13 @@ class GraphBuilder:
             d = self.wheel.between(t_a, t_b)
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = (0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2)
+            if self.record and self.full_graph is not None:  # pushed by `_record` below
+                wr = self.wheel_records
+                wr.k.append(ka)
+                wr.delta.append(d)
+                wr.cov.append(cov)
+                wr.index.append(self.full_graph.size() + inc.graph.size())
+                wr.out_of_plane = oop
             inc.graph.add(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
             wp = pose_a.compose(se2_to_pose3(d))
             if self.has_imu:

@@ -523,7 +523,9 @@ class GraphEstimator:
         rec = b.records.arrays()
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
-                                    has_wheel=b.has_wheel, with_scale=b.with_scale)
+                                    has_wheel=b.has_wheel, with_scale=b.with_scale,
+                                    wheel={**b.wheel_records.arrays(),
+                                           "out_of_plane": b.wheel_records.out_of_plane})
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""
@@ -618,6 +620,9 @@ class GraphEstimator:
                             "lm_iterations": self._batch.lm_iterations,
                             "em_start": "nlos-first" if self._batch.nlos_first else "online",
                             "wall_s": self._batch_wall}
+            if self._batch.wheel_scale is not None:
+                out["batch"]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
+                                               "omega": float(self._batch.wheel_scale[1])}
             scale = self._batch.scale
         else:
             g, w = rec["g_online"], rec["w_online"]
