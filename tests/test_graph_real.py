@@ -110,19 +110,23 @@ def _start(range_scale: float) -> InitialState:
                         position_sigma=0.1, yaw_sigma=0.1, still=False, range_scale=range_scale)
 
 
-@pytest.mark.parametrize(("mode", "start_scale", "on"), [
-    ("auto", 1.07, True), ("auto", 0.95, True), ("auto", 1.01, False), (False, 1.07, False),
-    (True, 1.0, True)])
-def test_range_scale_auto_follows_the_start_solve(mode, start_scale: float, on: bool) -> None:
-    """Test that `estimate_range_scale = "auto"` switches scales on past 2 % at the start."""
+@pytest.mark.parametrize(("mode", "start_scale", "site_m", "on"), [
+    ("auto", 1.07, 10.0, True), ("auto", 0.95, 10.0, True), ("auto", 1.01, 10.0, False),
+    (False, 1.07, 10.0, False), (True, 1.0, 10.0, True),
+    # 2.5 % at room size moves the ranges by ~0.12 m: the start solve's noise (room-static)
+    ("auto", 1.025, 5.0, False), ("auto", 1.025, 40.0, True)])
+def test_range_scale_auto_follows_the_start_solve(mode, start_scale: float, site_m: float,
+                                                  on: bool) -> None:
+    """Test that `estimate_range_scale = "auto"` switches scales on past 2 % at the start
+    when the scale moves the ranges by more than half a metre."""
     from uwbfuse.graph.builder import GraphBuilder
     from uwbfuse.graph.imu import ImuBuffer
     from uwbfuse.graph.wheel import WheelTrack
     from uwbfuse.streams import AnchorMap
 
     cfg = Config(graph={"estimate_range_scale": mode})
-    anchors = AnchorMap(ids=("a", "b", "c"),
-                        positions=np.array([[0.0, 0, 2], [10, 0, 2], [0, 10, 2]]))
+    anchors = AnchorMap(ids=("a", "b", "c"), positions=np.array(
+        [[0.0, 0, 2], [site_m, 0, 2], [0, site_m, 2]]))
     b = GraphBuilder(cfg, anchors, frozenset({"wheel", "uwb"}), _start(start_scale),
                      ImuBuffer(), WheelTrack(), record=False)
     assert b.with_scale is on

@@ -42,7 +42,7 @@ from uwbfuse.graph.uwb import (
     residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
-from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
+from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -301,7 +301,8 @@ class GraphBuilder:
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
         self.with_scale = self.g.estimate_range_scale is True
         start_k = float(getattr(start, "range_scale", 1.0)) - 1.0
-        if self.g.estimate_range_scale == "auto" and abs(start_k) > RANGE_SCALE_MIN_ERROR:
+        if self.g.estimate_range_scale == "auto" and range_scale_applies(
+                start_k, anchors, np.asarray(start.position)):
             # The start solve fits one common scale with the pose; residuals after the
             # fact cannot show it (the trajectory absorbs a scale error), so `auto` decides
             # here, as the filters do.

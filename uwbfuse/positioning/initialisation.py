@@ -79,6 +79,22 @@ _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and tra
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
 RANGE_SCALE_MIN_ERROR = 0.02
 """A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
+RANGE_SCALE_MIN_EFFECT_M = 0.5
+"""... and when it moves the ranges of the start position by this much (m, at the median
+anchor distance). Start solves find the scale (k) to about 1-2 % at room size: k x distance
+was 2.4 and 3.3 m on Plaza2 and Plaza1 (radios ~7 % long at 34-41 m), 0.12 m on the
+simulated room-static seed 0 (k = 2.5 % at 4.9 m, a false positive that put batch at
+0.11 m instead of 0.02 m) and 0.04 m on Labyrinth (1.9 % at 1.9 m)."""
+
+
+def range_scale_applies(k: float, anchors: AnchorMap, position: np.ndarray) -> bool:
+    """Whether a start solve's common range scale error k (ranges read (1 + k) x the
+    distance) is the radios' and not the solve's noise: beyond RANGE_SCALE_MIN_ERROR and
+    moving the ranges at `position` (map frame, m) by RANGE_SCALE_MIN_EFFECT_M."""
+    if abs(k) <= RANGE_SCALE_MIN_ERROR:
+        return False
+    d = np.linalg.norm(anchors.positions - np.asarray(position, np.float64)[None, :], axis=1)
+    return abs(k) * float(np.median(d)) > RANGE_SCALE_MIN_EFFECT_M
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 
 
