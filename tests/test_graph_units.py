@@ -209,6 +209,7 @@ def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors(
     """Test that `offline._WheelScale` fits (v, omega) scales of 1.03 and 0.98 from a track
     whose odometry read 1/1.03 of the distance and 1/0.98 of the turn, and that `apply`
     replaces the wheel factors at their indices with the scaled deltas."""
+    from uwbfuse.graph.builder import WheelRecords
     from uwbfuse.graph.keys import X
     from uwbfuse.graph.offline import _WheelScale
     from uwbfuse.graph.wheel import se2_between, se2_compose
@@ -233,9 +234,9 @@ def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors(
         raw = true / np.array([1.03, 1.03, 0.98]) + rng.normal(0, [1e-3, 1e-3, 1e-4])
         deltas.append(raw)
         graph.add(between_factor(X(k), X(k + 1), raw, cov, (0.01, 0.01, 0.01)))
-    wheel = {"k": np.arange(n - 1), "delta": np.array(deltas),
-             "cov": np.repeat(cov[None], n - 1, axis=0), "index": np.arange(n - 1)}
-    ws = _WheelScale(wheel)
+    records = WheelRecords(k=list(range(n - 1)), delta=deltas, cov=[cov] * (n - 1),
+                           index=list(range(n - 1)))
+    ws = _WheelScale(records)
     ws.refit(values, n)
     assert ws.scale == pytest.approx([1.03, 0.98], abs=0.002)
     assert ws.apply([graph])

@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config, UwbConfig
-from uwbfuse.graph.builder import WHEEL_HUBER_K, held_anchor_bias_sigma
+from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_sigma
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
@@ -132,12 +132,13 @@ class _WheelScale:
     `BetweenFactorPose3`s are rebuilt (`graph.replace`) when it moves.
     """
 
-    def __init__(self, wheel: dict[str, np.ndarray]) -> None:
+    def __init__(self, records: WheelRecords) -> None:
+        wheel = records.arrays()
         self.k = wheel["k"]
         self.delta = wheel["delta"]
         self.cov = wheel["cov"]
         self.index = wheel["index"]
-        self.out_of_plane = tuple(wheel.get("out_of_plane", (0.01, 0.01, 0.01)))
+        self.out_of_plane = records.out_of_plane
         self.scale = np.ones(2)
         self.applied = np.ones(2)
 
@@ -304,7 +305,7 @@ def solve(
     scale0: np.ndarray | None = None,
     has_wheel: bool = True,
     with_scale: bool = False,
-    wheel: dict[str, np.ndarray] | None = None,
+    wheel: WheelRecords | None = None,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
@@ -322,7 +323,7 @@ def solve(
     online, 0.24 m NLOS-first).
     """
     share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
-    wheel_scale = (_WheelScale(wheel) if wheel is not None and len(wheel["k"])
+    wheel_scale = (_WheelScale(wheel) if wheel is not None and wheel.k
                    and cfg.graph.estimate_wheel_scale else None)
     return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns,
                      scale0 if with_scale else None,
