@@ -25,16 +25,24 @@ from pathlib import Path
 
 
 def make_log(work: Path, scenario: str, duration_s: float) -> Path:
-    """Simulated contract log (cached by name)."""
-    from uwbfuse.io.writer import write_contract_log
-    from uwbfuse.sim.simulator import simulate
-
+    """Simulated contract log (cached by name), written by a child process: a parent that
+    simulated the hour itself (~1 GB) would pass its peak RSS to every child it forks
+    (Linux keeps ru_maxrss across exec), and each method's peak memory would read ~1 GB."""
     path = work / f"{scenario}_{int(duration_s)}s.mcap"
     if not path.exists():
         tic = time.perf_counter()
-        write_contract_log(path, simulate(scenario, duration_s, 0))
+        subprocess.run([sys.executable, __file__, "--simulate", scenario, str(duration_s),
+                        str(path)], check=True, env=dict(os.environ))
         print(f"# simulated {path.name} in {time.perf_counter() - tic:.1f} s", file=sys.stderr)
     return path
+
+
+def simulate_one(scenario: str, duration_s: str, path: str) -> None:
+    """Child process: simulate and write one contract log."""
+    from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.sim.simulator import simulate
+
+    write_contract_log(Path(path), simulate(scenario, float(duration_s), 0))
 
 
 def run_one(log_path: str, method: str) -> dict:
@@ -86,7 +94,12 @@ def main() -> None:
     ap.add_argument("--scenario", default="warehouse")
     ap.add_argument("--work", default="/tmp/uwbfuse-bench")
     ap.add_argument("--one", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
+    ap.add_argument("--simulate", nargs=3, metavar=("SCENARIO", "DURATION", "OUT"),
+                    help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.simulate:
+        simulate_one(*args.simulate)
+        return
     if args.one:
         print(json.dumps(run_one(*args.one)))
         return
