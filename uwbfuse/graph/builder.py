@@ -295,7 +295,9 @@ class GraphBuilder:
         self._rz: list[np.ndarray] = []
         self.record = record
         self.records = RangeRecords()
-        self.wheel_records = WheelRecords()
+        # roll, pitch (rad) and z (m) sigmas of the wheel factor
+        self.wheel_records = WheelRecords(
+            out_of_plane=(0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2))
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         self.full_values = gtsam.Values() if record else None
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
@@ -540,14 +542,13 @@ class GraphBuilder:
         if self.has_wheel:
             d = self.wheel.between(t_a, t_b)
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
-            oop = (0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2)
+            oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
                 wr = self.wheel_records
                 wr.k.append(ka)
                 wr.delta.append(d)
                 wr.cov.append(cov)
                 wr.index.append(self.full_graph.size() + inc.graph.size())
-                wr.out_of_plane = oop
             inc.graph.add(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
             wp = pose_a.compose(se2_to_pose3(d))
             if self.has_imu:

@@ -186,8 +186,9 @@ class GraphEstimator:
             return state
         t_init = int(state.t_ns)
         floor = [t_init - back_ns, int(w.t[0])]
-        if self.init.pre_ranges:
-            floor.append(int(min(int(np.min(r[0])) for r in self.init.pre_ranges if len(r[0]))))
+        t_pre = self.init.pre_range_arrays()[0] if self.init.pre_ranges else np.zeros(0)
+        if len(t_pre):
+            floor.append(int(t_pre.min()))
         if "imu" in self.streams and self.imu.first_t is not None:
             floor.append(self.imu.first_t)
         t_back = max(floor)

@@ -120,9 +120,9 @@ WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale move
 
 
 class _WheelScale:
-    """Odometry scale factors (v, omega) fitted to the smoothed track between LM rounds.
+    """Odometry scale factors (v, omega) fitted to the smoothed track after LM.
 
-    Each refit is the weighted least-squares scale of the recorded keyframe-to-keyframe
+    A refit is the weighted least-squares scale of the recorded keyframe-to-keyframe
     wheel deltas (translation for v, yaw for omega) against the same motion at the current
     estimate, Huber weights against slip, prior N(1, WHEEL_SCALE_SIGMA^2). Followed by an LM
     round it is one step of block coordinate descent on the joint problem (track and
