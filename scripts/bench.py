@@ -16,8 +16,9 @@ The machines are shared and their speed drifts (the same code has run 20-30 s fr
 to the next on the 10-minute log), so `--repeat N` runs every row N times and reports the
 medians, and every child first times a fixed reference workload that uses no uwbfuse code
 (`reference_workload`: building and solving a 3000-pose range-SLAM graph in GTSAM from
-Python, about 0.7 s on the project's 2-core machine). `ref s` is its median: compare real-time
-factors across days as x RT x ref s, which stays put when only the machine's speed moved.
+Python, 0.4-0.7 s on the project's 2-core machine). `ref s` is its median: a row's speed
+is only comparable with another day's at a similar `ref s` (on 2026-12-01, isam2 on the
+10-minute log ran 30.1x at ref 0.43 s and 23.6x at ref 0.70 s, same code).
 """
 
 from __future__ import annotations
