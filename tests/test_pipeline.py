@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from uwbfuse.config import Config
+from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Method
 from uwbfuse.pipeline import estimate
 from uwbfuse.sim.simulator import SimResult, simulate_with_truth
@@ -127,3 +128,23 @@ def test_provisional_pose_is_held_while_the_fallback_has_no_fix() -> None:
     assert got[10:150] == [(1.0, 2.0)] * 140
     assert got[150:] == [(5.0, 5.0)] * 50
     assert wf.report()["held_provisional_epochs"] == 140
+
+
+@pytest.mark.parametrize(
+    ("anchors", "reason"),
+    [
+        ((("A1", (0.0, 0.0, 1.5)), ("A4", (40.0, 20.0, 1.5))), "ranges from 2 anchor(s) only"),
+        ((("N1", (0.0, 0.0, 2.5)), ("N2", (5.0, 0.0, 2.5)), ("N3", (10.0, 0.0, 2.5))),
+         "lie on one line in x, y"),
+    ],
+    ids=["two-anchors", "collinear-anchors"],
+)
+@pytest.mark.parametrize("method", [Method.ISAM2, Method.BATCH, Method.EKF])
+def test_no_fix_from_the_anchors_says_why(anchors: tuple, reason: str, method: Method) -> None:
+    """test that a log whose anchors cannot fix a 2-D position fails in one line that says so"""
+    log = simulate_with_truth("factory", duration_s=15.0, seed=3, anchors=anchors).log
+    with pytest.raises(EstimatorError) as exc:
+        estimate(log, method, Config())
+    msg = str(exc.value)
+    assert "never initialised" in msg and reason in msg and "\n" not in msg
+    assert "3 anchors not on one line" in msg

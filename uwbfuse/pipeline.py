@@ -80,6 +80,31 @@ def check_inputs(log: SensorLog, method: Method, config: Config) -> frozenset[st
     return streams
 
 
+COLLINEAR_RMS_M = 0.1  # heard anchors closer than this (RMS) to one line in x, y
+
+
+def _never_initialised(log: SensorLog, method: Method) -> str:
+    """One line for a method that gave no pose at all, with the likely reason: too few
+    anchors heard, or all of them on one line in x, y (a 2-D fix from ranges then has a
+    mirror image; the starts need three anchors off a line)."""
+    msg = f"{log.source}: method {method.value} never initialised (no pose estimated)"
+    if log.ranges is None or log.anchors is None or not method.uses_ranges:
+        return msg
+    heard = np.unique(log.ranges.anchor[np.isfinite(log.ranges.range)])
+    ids = ", ".join(log.anchors.ids[int(a)] for a in heard[:6]) + (
+        ", ..." if len(heard) > 6 else "")
+    if len(heard) < 3:
+        return (f"{msg}: ranges from {len(heard)} anchor(s) only ({ids or 'none'}); "
+                "a 2-D fix needs 3 anchors not on one line")
+    xy = log.anchors.positions[heard, :2]
+    sv = np.linalg.svd(xy - xy.mean(axis=0), compute_uv=False)
+    off_line_rms = float(sv[-1]) / np.sqrt(len(heard))
+    if off_line_rms < COLLINEAR_RMS_M:
+        return (f"{msg}: the {len(heard)} anchors heard ({ids}) lie on one line in x, y "
+                f"({off_line_rms:.2f} m RMS off it); a 2-D fix needs 3 anchors not on one line")
+    return f"{msg}: {len(log.ranges)} ranges from {len(heard)} anchors ({ids})"
+
+
 def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
     """Run `method` on an already-read log (ground truth is never passed on)."""
     streams = check_inputs(log, method, config)
@@ -96,6 +121,8 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
     epochs = output_epochs(sensors_only, config.output.rate)
     res = run_streaming(estimator, sensors_only, epochs)
     smoothed = method in (Method.ISAM2_SMOOTHED, Method.BATCH)
+    if smoothed and res.final is None and len(res.causal) == 0:
+        raise EstimatorError(_never_initialised(log, method))
     if smoothed and res.final is None:
         raise EstimatorError(f"method {method.value} produced no final trajectory")
     traj = res.final if smoothed and res.final is not None else res.causal
@@ -111,9 +138,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
                 traj.has_orientation,
             )
     if len(traj) == 0:
-        raise EstimatorError(
-            f"{log.source}: method {method.value} never initialised (no pose estimated)"
-        )
+        raise EstimatorError(_never_initialised(log, method))
     t0, t1 = log.time_span_ns()
     return RunResult(
         method=method,
