@@ -22,9 +22,9 @@ from uwbfuse.config import Config, config_from_dict
 from uwbfuse.io import cdr_fast, msgdefs
 from uwbfuse.io.reader import (
     SKIP_INVALID_FLAG,
-    SKIP_NEGATIVE_RANGE,
     SKIP_NO_ANCHOR_MAP,
     SKIP_NON_FINITE_RANGE,
+    SKIP_NON_POSITIVE_RANGE,
     SKIP_RANGE_BOUNDS,
     SKIP_UNKNOWN_ANCHOR,
     read_log,
@@ -524,9 +524,9 @@ def _range_log(tmp_path: Path, values: list[float], ids: list[str],
 
 
 def test_bad_ranges_dropped_and_counted(tmp_path: Path) -> None:
-    """test that NaN/inf/negative/out-of-bounds ranges and unknown anchors are counted."""
-    values = [1.0, float("nan"), float("inf"), -0.5, 250.0, 2.0, 3.0, 4.0, 0.2]
-    ids = ["A0", "A0", "A1", "A1", "A0", "ZZ", "7475", "A1", "A0"]
+    """test that NaN/inf/zero/negative/out-of-bounds ranges and unknown anchors are counted."""
+    values = [1.0, float("nan"), float("inf"), -0.5, 250.0, 2.0, 3.0, 4.0, 0.2, 0.0]
+    ids = ["A0", "A0", "A1", "A1", "A0", "ZZ", "7475", "A1", "A0", "A1"]
     path = _range_log(tmp_path, values, ids)
     cfg = config_from_dict({"uwb": {"range_offset": {"A1": 0.5}, "min_range": 0.1}})
     got = read_log(path, cfg)
@@ -535,7 +535,7 @@ def test_bad_ranges_dropped_and_counted(tmp_path: Path) -> None:
     assert got.anchors.ids[got.ranges.anchor[1]] == "7475"
     sk = got.report.skipped
     assert sk[SKIP_NON_FINITE_RANGE] == 2
-    assert sk[SKIP_NEGATIVE_RANGE] == 1
+    assert sk[SKIP_NON_POSITIVE_RANGE] == 2  # -0.5 and a driver's 0 ("no range")
     assert sk[SKIP_RANGE_BOUNDS] == 1
     assert sk[SKIP_UNKNOWN_ANCHOR] == 1
     assert any("ZZ" in w for w in got.report.warnings)

@@ -63,7 +63,9 @@ class UwbConfig(_Section):
     range_offset: dict[str, float] = Field(
         default_factory=dict, description="per-anchor offset subtracted from ranges, metres"
     )
-    min_range: float = Field(0.0, description="ranges below this are dropped, metres")
+    min_range: float = Field(
+        0.0, description="ranges below this are dropped, metres (ranges <= 0 always are: many "
+        "UWB drivers report 0 for a failed exchange)")
     max_range: float = Field(200.0, description="ranges above this are dropped, metres")
     sigma: float = Field(0.10, gt=0, description="range noise std for LOS ranges, metres")
     robust_kernel: RobustKernel = Field(

@@ -52,7 +52,7 @@ SKIP_INVALID_FLAG = "range flagged invalid"
 SKIP_NO_ANCHOR_MAP = "no anchor map"
 SKIP_UNKNOWN_ANCHOR = "unknown anchor"
 SKIP_NON_FINITE_RANGE = "non-finite range"
-SKIP_NEGATIVE_RANGE = "negative range"
+SKIP_NON_POSITIVE_RANGE = "non-positive range"  # 0 is many UWB drivers' "no range"
 SKIP_RANGE_BOUNDS = "range outside [min_range, max_range]"
 SKIP_NO_WHEEL_JOINTS = "joint state without the configured wheel joints"
 
@@ -509,7 +509,7 @@ def _range_stream(
             keep &= ~unknown
     for reason, bad in (
         (SKIP_NON_FINITE_RANGE, ~np.isfinite(rng)),
-        (SKIP_NEGATIVE_RANGE, rng < 0),
+        (SKIP_NON_POSITIVE_RANGE, rng <= 0),
         (SKIP_RANGE_BOUNDS, (rng < u.min_range) | (rng > u.max_range)),
     ):
         with np.errstate(invalid="ignore"):
