@@ -66,6 +66,7 @@ _BLOCK_S = 0.1  # standstill test block length, s
 _RETRY_S = 0.5  # data time between two heading solves, s
 _N_SEEDS = 8
 _GYRO_BIAS_MAX = 0.1  # largest gyro turn-on bias a standstill may show, rad/s
+_MIN_STILL_IMU_SAMPLES = 20  # IMU samples in the standstill to take biases from it
 _SOFT_L1_SCALE = 2.0  # soft-L1 scale of the heading solve, in range sigmas
 _MAX_RANGES = 480  # ranges used by one heading solve (evenly thinned beyond)
 _IMU_WINDOW_S = 8.0  # longest window of an IMU-only (strapdown) track, s
@@ -436,13 +437,13 @@ class Initialiser:
         bg, ba = zeros, zeros
         if imu:
             g = self.config.imu.gravity
-            if still_ok:
-                sel = imu[0] < still_end
+            sel = imu[0] < still_end
+            if still_ok and np.count_nonzero(sel) >= _MIN_STILL_IMU_SAMPLES:
                 bg = np.mean(imu[1][sel], axis=0)
                 f_imu = np.mean(imu[2][sel], axis=0)
                 f_norm = float(np.linalg.norm(f_imu))
                 ba = (f_norm - g) * f_imu / max(f_norm, 1e-9)
-            else:
+            else:  # moving start, or an IMU that began after the (wheel) standstill
                 lw = int(cfg.level_window * NS_PER_S)
                 if imu[0][-1] - imu[0][0] < lw:
                     self.last_reason = "levelling: waiting for level_window of IMU data"
