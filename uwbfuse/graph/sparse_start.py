@@ -112,7 +112,11 @@ class SparseStartInitialiser:
             return None
         self._fallback_t = t_ns
         t, a, z = self.pre_range_arrays()
-        keep = t >= t_ns - round(START_WINDOW_S * NS_PER_S)
+        if len(self.wheel) < 2:
+            return None  # no wheel track yet
+        # ranges from before the first wheel sample have no track to fit (it would be
+        # carried back at constant velocity)
+        keep = t >= max(t_ns - round(START_WINDOW_S * NS_PER_S), int(self.wheel.t[0]))
         t, a, z = t[keep], a[keep], z[keep]
         z_floor = planar_height(self.anchors, 0.0)
         state = solve_start(self.wheel, self.anchors, t, a, z,

@@ -626,6 +626,10 @@ class Initialiser:
             # Strapdown drifts (bias, tilt): IMU-only tracks use a shorter window.
             max_win = min(max_win, _IMU_WINDOW_S)
         w_start = max(w_start, int(t_ns - max_win * NS_PER_S))
+        # the track needs its motion data: not before the later of the first wheel and IMU
+        # samples (wheels that began 10 s late, their track carried back at constant
+        # velocity, took the start 2 m and a 7 % range scale off)
+        w_start = max([w_start] + [int(c[0][0]) for c in (imu, wheel) if c])
         v0_known = motion_start is not None and w_start == motion_start
         tf, pf, okf = self._fixes(rng, w_start)
         pf, tf = pf[okf], tf[okf]
