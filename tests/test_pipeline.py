@@ -192,3 +192,20 @@ def test_wheels_that_start_late(streams: tuple[str, ...], method: Method) -> Non
     ate = evaluate(estimate(sim.log, method, Config()).trajectory,
                    sim.log.ground_truth).ate_2d.rmse
     assert ate < TOL_LATE_WHEELS[method], f"{method.value}: {ate:.3f} m"
+
+
+@pytest.mark.parametrize("method", [Method.BATCH, Method.ISAM2_SMOOTHED])
+def test_smoothers_on_a_log_too_short_to_start_write_the_provisional_poses(
+    method: Method,
+) -> None:
+    """test that a 3 s log (the graph cannot start: no heading yet) gets the same provisional
+    UWB-fix poses from the smoothers as from isam2, with the report saying so, instead of an
+    error"""
+    log = simulate_with_truth("warehouse", duration_s=3.0, seed=2).log
+    causal = estimate(log, Method.ISAM2, Config())
+    res = estimate(log, method, Config())
+    assert res.report["initialised"] is False
+    assert "never started" in res.report["final_trajectory"]
+    np.testing.assert_array_equal(res.trajectory.t_ns, causal.trajectory.t_ns)
+    np.testing.assert_allclose(res.trajectory.position, causal.trajectory.position)
+    assert len(res.trajectory) >= 25

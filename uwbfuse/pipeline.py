@@ -124,7 +124,13 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
     if smoothed and res.final is None and len(res.causal) == 0:
         raise EstimatorError(_never_initialised(log, method))
     if smoothed and res.final is None:
-        raise EstimatorError(f"method {method.value} produced no final trajectory")
+        # the log ended before the graph could start (a few seconds, no motion to fix the
+        # heading): the provisional poses that isam2 writes too, said so in the report
+        logging.getLogger(__name__).warning(
+            "%s: method %s never started its graph; writing the provisional "
+            "(causal, UWB-fix) poses", log.source, method.value)
+        res.report["final_trajectory"] = ("none: the graph never started; the output is "
+                                          "the provisional causal poses")
     traj = res.final if smoothed and res.final is not None else res.causal
     if smoothed and len(traj) and len(res.causal):
         # A smoother starts at its own initialisation; the epochs before it keep their
