@@ -188,3 +188,30 @@ def test_real_plaza1_lkf_holds_through_the_range_outage() -> None:
     res = estimate(log, Method.LKF, Config())
     ev = evaluate(res.trajectory, log.ground_truth, align="none", max_dt=0.05)
     assert ev.ate_2d.rmse < 22.0
+
+
+@pytest.mark.parametrize("bad_epoch", [1, 0], ids=["second-fix-off", "first-fix-off"])
+def test_first_fixes_wait_for_a_second_opinion(bad_epoch: int) -> None:
+    """test that, before two fixes have agreed, a fix far from the only one before it is
+    held back until the next fix says which of the two was off (two outliers among four
+    ranges took a first fix 2 m away)"""
+    from uwbfuse.filters.wls import EpochFixer
+    from uwbfuse.streams import AnchorMap
+
+    anchors = AnchorMap(("A1", "A2", "A3", "A4"), np.array(
+        [[0, 0, 1.5], [0, 20, 1.5], [40, 0, 1.5], [40, 20, 1.5]], dtype=np.float64))
+    tag = np.array([8.5, 2.5, 0.0])
+    fixer = EpochFixer(Config(), anchors, frozenset({"uwb", "wheel"}))
+    out = []
+    for e in range(3):
+        t = (e * 100_000_000 + np.array([25, 50, 75, 100]) * 1_000_000).astype(np.int64)
+        r = np.linalg.norm(anchors.positions - tag, axis=1)
+        if e == bad_epoch:
+            r = r + np.array([0.0, 1.9, 0.0, -2.9])
+        fixer.add_ranges(t, np.arange(4), r)
+        out.append(fixer.fix(int(t[-1])))
+    assert out[1] is None  # held either way: it disagrees with the first
+    assert out[2] is not None and np.hypot(*(out[2].position[:2] - tag[:2])) < 0.05
+    assert fixer.report()["jump_rejected_fixes"] == 1
+    if bad_epoch == 0:
+        assert out[0] is not None and np.hypot(*(out[0].position[:2] - tag[:2])) > 0.5

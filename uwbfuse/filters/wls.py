@@ -63,6 +63,12 @@ def yaw_quat(yaw: float) -> np.ndarray:
     return np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
 
 
+def _agree(ref: tuple[int, np.ndarray], t_ns: int, pos: np.ndarray) -> bool:
+    """Fix `pos` at t_ns is within a vehicle's reach of the fix `ref` (stamp ns, position)."""
+    dt = abs(t_ns - ref[0]) / NS_PER_S
+    return float(np.linalg.norm(pos - ref[1])) <= _JUMP_FLOOR + _MAX_SPEED * dt
+
+
 @dataclass(frozen=True)
 class TagFix:
     """One epoch's fix of the tag antenna (map frame).
@@ -117,6 +123,7 @@ class EpochFixer:
         self.n_excluded = 0
         self.n_jumps = 0
         self._track = False  # the last two accepted fixes agreed (the jump gate is armed)
+        self._cand: tuple[int, np.ndarray] | None = None  # a fix waiting for a second opinion
         self.n_inconsistent = 0
         self._prev: tuple[int, np.ndarray] | None = None
         self._loo_grid = np.zeros((1, len(anchors)))
@@ -170,11 +177,20 @@ class EpochFixer:
             # The gate needs a track: two consecutive fixes that agree. Until then a fix
             # replaces the last one (the very first epoch may see only three anchors).
             dt = (t_ns - self._prev[0]) / NS_PER_S
-            jump = float(np.linalg.norm(fx.position[k] - self._prev[1]))
-            far = jump > _JUMP_FLOOR + _MAX_SPEED * dt
+            far = not _agree(self._prev, int(t_ns), fx.position[k])
             if far and dt < _RELOCK_S and self._track:
                 self.n_jumps += 1
                 return None
+            if far and dt < _RELOCK_S:
+                # No track yet and the fix disagrees with the only one before it: one of
+                # the two is off (two outliers among four ranges took a first fix 2 m
+                # away). It waits; the next fix joins whichever of the two it agrees with.
+                cand, self._cand = self._cand, (int(t_ns), fx.position[k].copy())
+                if cand is None or not _agree(cand, int(t_ns), fx.position[k]):
+                    self.n_jumps += 1
+                    return None
+                far = False  # agrees with the waiting fix: the earlier one was off
+            self._cand = None
             self._track = not far and dt < _RELOCK_S
         self.n_fixes += 1
         self._prev = (int(t_ns), fx.position[k].copy())
