@@ -174,8 +174,8 @@ class EpochFixer:
         if self._prev is not None:
             # Jump gate: a fix farther from the last one than a vehicle can move is held
             # back, unless fixes keep disagreeing for _RELOCK_S (then the track moves).
-            # The gate needs a track: two consecutive fixes that agree. Until then a fix
-            # replaces the last one (the very first epoch may see only three anchors).
+            # The gate needs a track: two consecutive fixes that agree. Until then a fix far
+            # from the last one waits for a second opinion (below).
             dt = (t_ns - self._prev[0]) / NS_PER_S
             far = not _agree(self._prev, int(t_ns), fx.position[k])
             if far and dt < _RELOCK_S and self._track:

@@ -110,10 +110,10 @@ class SparseStartInitialiser:
             return None
         if self._fallback_t is not None and t_ns - self._fallback_t < self._retry_s * NS_PER_S:
             return None
-        self._fallback_t = t_ns
-        t, a, z = self.pre_range_arrays()
         if len(self.wheel) < 2:
             return None  # no wheel track yet
+        self._fallback_t = t_ns
+        t, a, z = self.pre_range_arrays()
         # ranges from before the first wheel sample have no track to fit (it would be
         # carried back at constant velocity)
         keep = t >= max(t_ns - round(START_WINDOW_S * NS_PER_S), int(self.wheel.t[0]))

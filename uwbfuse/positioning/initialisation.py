@@ -78,6 +78,7 @@ _SIGMA_INFLATION = 2.0  # reported / least-squares std of the solved start state
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
+_MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 RANGE_SCALE_MIN_ERROR = 0.02
 """A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
 RANGE_SCALE_MIN_EFFECT_M = 0.5
@@ -96,7 +97,6 @@ def range_scale_applies(k: float, anchors: AnchorMap, position: np.ndarray) -> b
         return False
     d = np.linalg.norm(anchors.positions - np.asarray(position, np.float64)[None, :], axis=1)
     return abs(k) * float(np.median(d)) > RANGE_SCALE_MIN_EFFECT_M
-_MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 
 
 @dataclass(frozen=True)
