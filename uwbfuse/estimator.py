@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
+from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, SensorLog
 
 
 class Method(StrEnum):
@@ -43,11 +43,16 @@ class Method(StrEnum):
 
 @dataclass(frozen=True)
 class PoseEstimate:
-    """One pose of the base frame in the map frame: position (3,) m, quat_xyzw (4,)."""
+    """One pose of the base frame in the map frame: position (3,) m, quat_xyzw (4,).
+
+    `covariance` (6,6), when the estimator knows it: ROS order (x, y, z, rot x, rot y,
+    rot z), map frame axes; see `PoseStream`.
+    """
 
     t_ns: int
     position: np.ndarray
     quat_xyzw: np.ndarray
+    covariance: np.ndarray | None = None
 
 
 class Estimator(Protocol):
@@ -207,10 +212,18 @@ def _poses_to_stream(poses: list[PoseEstimate]) -> PoseStream:
     if not poses:
         empty = np.zeros((0, 3))
         return PoseStream(np.zeros(0, dtype=np.int64), empty, np.zeros((0, 4)))
+    covariance = None
+    if any(p.covariance is not None for p in poses):
+        unknown = np.eye(6) * UNKNOWN_VARIANCE
+        covariance = np.array(
+            [unknown if p.covariance is None else p.covariance for p in poses],
+            dtype=np.float64,
+        )
     return PoseStream(
         np.array([p.t_ns for p in poses], dtype=np.int64),
         np.array([p.position for p in poses], dtype=np.float64),
         np.array([p.quat_xyzw for p in poses], dtype=np.float64),
+        covariance=covariance,
     )
 
 

@@ -97,20 +97,35 @@ class RangeStream:
         return RangeStream(self.t_ns[start:stop], self.anchor[start:stop], self.range[start:stop])
 
 
+UNKNOWN_VARIANCE = 1.0e6
+"""Variance (m^2 or rad^2) reported for a pose component a method does not estimate
+(ROS convention: a very large value marks it unknown)."""
+
+
 @dataclass(frozen=True)
 class PoseStream:
     """Poses of the base frame in the map frame: position (N,3) m, quat_xyzw (N,4).
 
     `has_orientation` is False when the source carries position only (identity quaternions).
+    `covariance` (N,6,6), when known, is each pose's covariance in ROS order (x, y, z in m,
+    then rotation about the map frame's x, y, z axes in rad), as in
+    `geometry_msgs/msg/PoseWithCovariance`; a degree of freedom the method does not
+    estimate has variance `UNKNOWN_VARIANCE`.
     """
 
     t_ns: I64
     position: F64
     quat_xyzw: F64
     has_orientation: bool = True
+    covariance: F64 | None = None
 
     def __post_init__(self) -> None:
         _check_len("poses", self.t_ns, self.position, self.quat_xyzw)
+        if self.covariance is not None and self.covariance.shape != (len(self.t_ns), 6, 6):
+            raise ValueError(
+                f"poses: covariance has shape {self.covariance.shape}, "
+                f"expected ({len(self.t_ns)}, 6, 6)"
+            )
 
     def __len__(self) -> int:
         return len(self.t_ns)
