@@ -149,6 +149,18 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
+    motion_accel_density: float = Field(
+        1.0, gt=0, allow_inf_nan=False,
+        description="logs with neither IMU nor wheels: white-noise acceleration of the "
+        "constant-velocity motion prior between keyframes, m/s^2/sqrt(Hz) (1: a walker or "
+        "pushed trolley changes its speed by about 1 m/s within a second)"
+    )
+    motion_turn_density: float = Field(
+        0.5, gt=0, allow_inf_nan=False,
+        description="logs with neither IMU nor wheels: white-noise turn rate of that prior, "
+        "rad/s/sqrt(Hz) (yaw only matters through the tag's lever arm; roll and pitch are "
+        "held level)"
+    )
     imu_noise_inflation: float | Literal["auto"] = Field(
         "auto", description="factor on the IMU noise densities and bias random walks in "
         "the preintegration: room for the unmodelled errors of consumer MEMS (scale, "
@@ -232,6 +244,14 @@ class GraphConfig(_Section):
     )
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
+    )
+    range_model: Literal["auto", "mixture", "robust", "robust, common scale"] = Field(
+        "auto", description="batch: range error model. mixture = LOS/NLOS mixture with "
+        "per-anchor NLOS excess states (EM); robust = Huber around per-anchor offsets, the "
+        "LOS sigma from the residuals (1.4826 MAD); robust, common scale = the same with "
+        "one range scale for all anchors (where scales are estimated); auto = each fitted "
+        "without a held-out eighth of the log's 2 s stretches, and the one whose fit "
+        "predicts those ranges best (log score) is fitted to the whole log"
     )
     lm_max_iterations: int = Field(
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"

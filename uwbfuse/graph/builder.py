@@ -250,8 +250,11 @@ class GraphBuilder:
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
-        self.has_imu = "imu" in streams
         self.has_wheel = "wheel" in streams
+        # neither IMU nor wheels: a constant-velocity prior carried by a virtual IMU (the
+        # IMU factor path with V and B keys; `imu.motion_prior_params`)
+        self.cv_motion = "imu" not in streams and not self.has_wheel
+        self.has_imu = "imu" in streams or self.cv_motion
         self.planar = self.g.planar == "on" or (self.g.planar == "auto" and self.has_wheel)
         self.period_ns = round(NS_PER_S / self.g.keyframe_rate)
         self.t0 = int(start.t_ns)
@@ -278,12 +281,16 @@ class GraphBuilder:
         self.e_created: set[tuple[int, int]] = set()  # NLOS states in the current smoother
         self.review = True  # delayed re-classification of ranges (online)
         self.z0 = planar_height(anchors, float(start.position[2]))
-        self.pim_params = (
-            imu_mod.preintegration_params(config.imu, config.extrinsics,
-                                          imu_inflation(self.g.imu_noise_inflation,
-                                                        self.has_wheel))
-            if self.has_imu else None
-        )
+        if self.cv_motion:
+            self.pim_params: gtsam.PreintegrationCombinedParams | None = (
+                imu_mod.motion_prior_params(self.g.motion_accel_density,
+                                            self.g.motion_turn_density, config.imu.gravity))
+        elif self.has_imu:
+            self.pim_params = imu_mod.preintegration_params(
+                config.imu, config.extrinsics,
+                imu_inflation(self.g.imu_noise_inflation, self.has_wheel))
+        else:
+            self.pim_params = None
         # current estimate of the newest keyframe (updated by the smoother)
         self.pose = gtsam.Pose3(gtsam.Rot3(np.asarray(start.R_map_base, dtype=np.float64)),
                                 np.asarray(start.position, dtype=np.float64))
@@ -385,6 +392,10 @@ class GraphBuilder:
             dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
             rel = se2_between(dd[0][None, :], dd[1:])
             return [se2_to_pose3(r) for r in rel]
+        if self.cv_motion:  # constant velocity (map frame) carried into the base frame
+            step = pose_a.rotation().unrotate(np.asarray(vel_a, np.float64))
+            dts = (np.asarray(t_b, np.int64) - t_a).astype(np.float64) / NS_PER_S
+            return [gtsam.Pose3(gtsam.Rot3(), step * d) for d in dts.tolist()]
         if self.has_imu and self.pim_params is not None and len(self.imu):
             out = []
             nav = gtsam.NavState(pose_a, vel_a)
@@ -459,11 +470,13 @@ class GraphBuilder:
                             "velocity sigma 1 m/s", speed)
                 self.vel = np.zeros(3)
                 v_s = 1.0
+            elif self.cv_motion:  # no sensor tells the start velocity: walking pace
+                v_s = 1.0
             else:
                 v_s = 0.1 if speed < 0.05 else 0.5
             inc.graph.add(gtsam.PriorFactorVector(V(0), self.vel, diagonal([v_s] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
-                B(0), self.bias, diagonal(imu_mod.bias_prior_sigmas(self.cfg.imu))))
+                B(0), self.bias, diagonal(self.bias_prior_sigmas())))
             inc.values.insert(V(0), self.vel)
             inc.values.insert(B(0), self.bias)
             keys += [V(0), B(0)]
@@ -505,6 +518,12 @@ class GraphBuilder:
                         C, D(a), 0.0,
                         gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_anchor_sigma)))
         return inc
+
+    def bias_prior_sigmas(self) -> np.ndarray:
+        """IMU bias prior sigmas (m/s^2, rad/s): the IMU's, or the virtual IMU's tight ones."""
+        if self.cv_motion:
+            return np.full(6, imu_mod.VIRTUAL_BIAS_SIGMA)
+        return imu_mod.bias_prior_sigmas(self.cfg.imu)
 
     def _stamp_globals(self, inc: Increment, s: float) -> None:
         """Anchors and range biases never leave the smoother's window."""
@@ -556,9 +575,12 @@ class GraphBuilder:
                 new_pose = gtsam.Pose3(new_pose.rotation(), xyz)
             else:
                 new_pose = wp
-        if not self.has_imu and not self.has_wheel:
-            s = pose_sigmas((1.0 * dt,) * 3, (2.0 * dt,) * 3)
-            inc.graph.add(gtsam.BetweenFactorPose3(X(ka), X(k), gtsam.Pose3(), diagonal(s)))
+        if self.cv_motion:  # the virtual IMU assumes a level base: hold roll and pitch
+            ypr = new_pose.rotation().ypr()
+            level = gtsam.Pose3(gtsam.Rot3.Ypr(float(ypr[0]), 0.0, 0.0), new_pose.translation())
+            big = 1e3
+            inc.graph.add(gtsam.PriorFactorPose3(X(k), level, diagonal(pose_sigmas(
+                (self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big), (big, big, big)))))
         if self.planar:
             inc.graph.add(self._planar_prior(k, new_pose))
         inc.values.insert(X(k), new_pose)

@@ -50,7 +50,7 @@ from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate
 from uwbfuse.graph import offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
-from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
+from uwbfuse.graph.imu import ImuBuffer
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
@@ -433,7 +433,7 @@ class GraphEstimator:
         if b.has_imu:
             inc.graph.add(gtsam.PriorFactorVector(V(k), b.vel, diagonal([0.5] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
-                B(k), b.bias, diagonal(bias_prior_sigmas(self.cfg.imu))))
+                B(k), b.bias, diagonal(b.bias_prior_sigmas())))
             inc.values.insert(V(k), b.vel)
             inc.values.insert(B(k), b.bias)
             inc.stamps[V(k)] = s
@@ -619,6 +619,8 @@ class GraphEstimator:
             out["batch"] = {"em_rounds": self._batch.rounds,
                             "lm_iterations": self._batch.lm_iterations,
                             "em_start": "nlos-first" if self._batch.nlos_first else "online",
+                            "range_model": self._batch.range_model,
+                            "heldout_log_score": self._batch.heldout_score,
                             "wall_s": self._batch_wall}
             if self._batch.wheel_scale is not None:
                 out["batch"]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
