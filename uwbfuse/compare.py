@@ -41,8 +41,9 @@ drift over a room's length."""
 RPE_NOTE = (
     "rpe1m / rpe10m: RMSE of the translation error of the relative motion over 1 m / 10 m of "
     "ground-truth path, every pose as a start (the same numbers as `evo_rpe tum GT EST "
-    "--pose_relation trans_part --delta 1 --delta_unit m --all_pairs --pairs_from_reference`, "
-    "delta 10 for rpe10m); empty when the ground-truth path is too short."
+    "--pose_relation trans_part --delta 1 --delta_unit m --all_pairs --pairs_from_reference "
+    "--t_max_diff 0.05`, delta 10 for rpe10m, t_max_diff half the output period); empty "
+    "when the ground-truth path is too short."
 )
 
 

@@ -219,8 +219,9 @@ def _trajectories(
     else:
         zoom.set_title("Zoom: no reference track to choose a window")
     handles, labels = site.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9,
-               frameon=False)
+    if labels:
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=9,
+                   frameon=False)
     fig.suptitle(f"Trajectories ({nlos_note})", fontsize=11)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
     return _save(fig, path, plt, tight=False)
@@ -415,8 +416,9 @@ def _xy_yaw(plt: Any, scene: _Scene, path: Path) -> Path:
     for ax in axes:
         ax.grid(True, alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9,
-               frameon=False)
+    if labels:
+        fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=9,
+                   frameon=False)
     fig.suptitle("Position and heading against time (base frame in the map frame)")
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     return _save(fig, path, plt, tight=False)
