@@ -32,9 +32,6 @@ COLUMNS = (
     "rpe1m_rmse_m", "rpe10m_rmse_m", "yaw_rmse_deg", "coverage_pct", "poses", "wall_s",
     "realtime_factor", "error",
 )
-DOWNWEIGHTED = 0.999
-"""Robust-kernel weight below which a LOS range counts as down-weighted (the graph's report
-threshold)."""
 RPE_PATHS_M = (1.0, 10.0)
 """Travelled ground-truth path (m) of the table's RPE columns: local error over a metre,
 drift over a room's length."""
@@ -316,10 +313,7 @@ class RangeResiduals:
             k = np.clip(np.searchsorted(t_cls, self.t_ns[sel]), 0, len(t_cls) - 1)
             hit = t_cls[k] == self.t_ns[sel]
             j = order[k[hit]]
-            code = classes.nlos[j].astype(np.int8)
-            if classes.weight is not None:
-                code[(code == 0) & (classes.weight[j] < DOWNWEIGHTED)] = 2
-            out[sel[hit]] = code
+            out[sel[hit]] = np.where(classes.downweighted[j], 2, classes.nlos[j])
         return out
 
 

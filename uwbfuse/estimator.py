@@ -73,6 +73,13 @@ class RangeClasses:
     def nlos(self) -> np.ndarray:
         return self.p_nlos > 0.5
 
+    @property
+    def downweighted(self) -> np.ndarray:
+        """LOS ranges whose weight is below 0.999 (all False without weights)."""
+        if self.weight is None:
+            return np.zeros(len(self.p_nlos), dtype=bool)
+        return ~self.nlos & (self.weight < 0.999)
+
 
 def range_classes_of(estimator: object) -> RangeClasses | None:
     """`estimator.range_classes()` where it has one, else None."""
