@@ -117,7 +117,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
 
     result = compare_log(
         args.log, methods=args.methods, config_path=args.config, out_dir=args.out,
-        gt_path=args.gt, align=args.align,
+        gt_path=args.gt, align=args.align, html=args.html,
     )
     print(result.markdown(), end="")
     print(f"wrote {len(result.files)} files to {result.out_dir}/")
@@ -223,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--gt", metavar="GT.tum", help="ground truth when the log has none")
     c.add_argument("--align", default="none", choices=["none", "se2", "se3"],
                    help="align each estimate to a ground truth in another frame")
+    c.add_argument("--html", action="store_true",
+                   help="also write DIR/report.html: table, plots and config in one file")
     c.set_defaults(func=_cmd_compare)
 
     m = sub.add_parser("montecarlo", help="repeat simulated runs over seeds")

@@ -55,6 +55,38 @@ class PoseEstimate:
     covariance: np.ndarray | None = None
 
 
+@dataclass(frozen=True)
+class RangeClasses:
+    """An estimator's own LOS/NLOS classification of the ranges it used: stamps (N,) int64
+    ns, anchor index (N,), P(NLOS) (N,) in [0, 1]; a range counts as NLOS where
+    P(NLOS) > 0.5 (as the graph's report counts them). `weight` (N,), where known, is the
+    robust kernel's weight of the LOS part (1 = full; below 0.999 the report counts the
+    range as down-weighted). Optional: estimators without a per-range classification have
+    no `range_classes` method (or return None)."""
+
+    t_ns: np.ndarray
+    anchor: np.ndarray
+    p_nlos: np.ndarray
+    weight: np.ndarray | None = None
+
+    @property
+    def nlos(self) -> np.ndarray:
+        return self.p_nlos > 0.5
+
+    @property
+    def downweighted(self) -> np.ndarray:
+        """LOS ranges whose weight is below 0.999 (all False without weights)."""
+        if self.weight is None:
+            return np.zeros(len(self.p_nlos), dtype=bool)
+        return ~self.nlos & (self.weight < 0.999)
+
+
+def range_classes_of(estimator: object) -> RangeClasses | None:
+    """`estimator.range_classes()` where it has one, else None."""
+    get = getattr(estimator, "range_classes", None)
+    return get() if callable(get) else None
+
+
 class Estimator(Protocol):
     """Streaming estimator (graph or filter). Batches arrive time-sorted per stream."""
 
@@ -179,6 +211,9 @@ class WithFallback:
     def finish(self) -> PoseStream | None:
         return self.primary.finish()
 
+    def range_classes(self) -> RangeClasses | None:
+        return range_classes_of(self.primary)
+
     def report(self) -> dict[str, Any]:
         out = dict(self.primary.report())
         out["provisional_epochs"] = self.fallback_epochs
@@ -195,6 +230,7 @@ class StreamingResult:
     step_latency_s: np.ndarray
     wall_s: float
     report: dict[str, Any] = field(default_factory=dict)
+    range_classes: RangeClasses | None = None
 
 
 def output_epochs(log: SensorLog, rate_hz: float) -> np.ndarray:
@@ -270,4 +306,5 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
             poses.append(est)
     final = estimator.finish()
     wall = time.perf_counter() - wall0
-    return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report())
+    return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report(),
+                           range_classes_of(estimator))

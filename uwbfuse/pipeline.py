@@ -17,7 +17,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError
-from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
+from uwbfuse.estimator import Method, RangeClasses, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
 from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
 
@@ -40,6 +40,7 @@ class RunResult:
     log_duration_s: float
     report: dict[str, Any] = field(default_factory=dict)
     read_report: ReadReport = field(default_factory=ReadReport)
+    range_classes: RangeClasses | None = None  # the estimator's own LOS/NLOS per range
 
     @property
     def realtime_factor(self) -> float:
@@ -157,6 +158,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
         log_duration_s=(t1 - t0) / NS_PER_S,
         report=res.report,
         read_report=log.report,
+        range_classes=res.range_classes,
     )
 
 

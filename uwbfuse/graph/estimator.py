@@ -47,7 +47,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import Estimator, Method, PoseEstimate
+from uwbfuse.estimator import Estimator, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer
@@ -585,6 +585,18 @@ class GraphEstimator:
                           np.concatenate([quat, traj.quat_xyzw]), True)
 
     # ------------------------------------------------------------------ report
+    def range_classes(self) -> RangeClasses | None:
+        """P(NLOS) of every range in the graph as the report counts it (batch: the final EM
+        responsibilities; online: the lag-window review's); None without the NLOS model."""
+        b = self.builder
+        if b is None or not b.nlos:
+            return None
+        rec = b.records.arrays()
+        g, w = ((self._batch.nlos_prob, self._batch.weight) if self._batch is not None
+                else (rec["g_online"], rec["w_online"]))
+        return RangeClasses(rec["t_ns"], rec["anchor"], np.asarray(g, dtype=np.float64),
+                            np.asarray(w, dtype=np.float64))
+
     def report(self) -> dict[str, Any]:
         """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
         out: dict[str, Any] = {"method": self.method.value}
