@@ -11,6 +11,7 @@ from tests.helpers import real
 from uwbfuse.config import Config, load_config
 from uwbfuse.estimator import Method
 from uwbfuse.eval.evaluate import evaluate
+from uwbfuse.graph.uwb import huber_log_density
 from uwbfuse.io.reader import read_log
 from uwbfuse.io.tum import read_tum
 from uwbfuse.pipeline import estimate
@@ -38,8 +39,7 @@ def test_heldout_phases_partition_the_log_after_its_first_stretch():
 @pytest.mark.parametrize("k", [0.5, 1.345, 3.0])
 def test_huber_density_is_normalised(k):
     """Test that the robust model's predictive density integrates to one."""
-    total, _ = integrate.quad(lambda r: np.exp(offline._huber_log_density(np.array([r]), 0.07,
-                                                                          k)[0]),
+    total, _ = integrate.quad(lambda r: np.exp(huber_log_density(np.array([r]), 0.07, k)[0]),
                               -5, 5, points=[-k * 0.07, 0.0, k * 0.07], limit=200)
     assert total == pytest.approx(1.0, abs=1e-6)
 

@@ -246,12 +246,14 @@ class GraphConfig(_Section):
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
     )
     range_model: Literal["auto", "mixture", "robust", "robust, common scale"] = Field(
-        "auto", description="batch: range error model. mixture = LOS/NLOS mixture with "
+        "auto", description="range error model. mixture = LOS/NLOS mixture with "
         "per-anchor NLOS excess states (EM); robust = Huber around per-anchor offsets, the "
         "LOS sigma from the residuals (1.4826 MAD); robust, common scale = the same with "
-        "one range scale for all anchors (where scales are estimated); auto = each fitted "
-        "without a held-out eighth of the log's 2 s stretches, and the one whose fit "
-        "predicts those ranges best (log score) is fitted to the whole log"
+        "one range scale for all anchors (batch, where scales are estimated); auto: batch "
+        "fits each without a held-out eighth of the log's 2 s stretches and fits the one "
+        "that predicts those ranges best (log score) to the whole log; the online graph "
+        "scores each new range under both before using it (prequential) and weights the "
+        "ranges to come by the better model so far"
     )
     lm_max_iterations: int = Field(
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"

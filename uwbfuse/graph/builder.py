@@ -31,10 +31,12 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.uwb import (
+    LOG_OUTLIER,
     MIN_WEIGHT,
     SIGMA_LOS_MIN,
     NlosModel,
     hmm_filter,
+    huber_log_density,
     jump_log_likelihoods,
     los_bias_key,
     nlos_state_factors,
@@ -67,6 +69,10 @@ MAX_SCALE = 0.2  # bound on a range scale error
 # (misclassified NLOS ranges inflated the RMS: factory read 0.042-0.047 for a true 0.026)
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
+PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
+# ranges before the online prequential scores start (the robust sigma needs them) and, as
+# many again, before they may switch the model
+MIN_PREQUENTIAL_RANGES = 100
 
 
 @dataclass
@@ -331,6 +337,13 @@ class GraphBuilder:
         self._jump_r = np.zeros(m)  # per anchor: last range residual (m) and its stamp
         self._jump_t = np.full(m, np.iinfo(np.int64).min // 2, dtype=np.int64)
         self._predicted_window = ResidualWindow()
+        # online choice of the range model by prequential score: the log predictive density
+        # (nats) of each new range under the mixture and under the robust model, summed
+        self.prequential = np.zeros(2)
+        self.prequential_n = 0
+        self.robust_online = False  # new ranges weighted as the robust model, no NLOS states
+        self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
+        self._abs_i = 0
 
     # ---------------------------------------------------------------- data
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
@@ -622,17 +635,21 @@ class GraphBuilder:
                     ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
                     None if jump is None else jump[sel])
             self._online_m_step(r_los, r_nlos, g)
+            self._prequential_choice(r_los, ll_l, ll_n, prior)
+            if self.robust_online:
+                g[:] = 0.0
         else:
             e_pred = np.zeros(len(t))
         slots = [self.range_factors(inc, ka, int(a[j]), float(z[j]), tag_kf[j], int(seg[j]),
                                     float(g[j]), float(e_pred[j])) for j in range(len(t))]
-        sig_l = mix.sigma_los if self.nlos else self.cfg.uwb.sigma
+        sig_l = self.robust_sigma() if self.robust_online else (
+            mix.sigma_los if self.nlos else self.cfg.uwb.sigma)
         uwb = self.cfg.uwb
         w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
         if self.with_scale:
             self._update_scale(a, r_los, pred, (1.0 - g) * w)
         rec = self.records
-        if self.nlos and self.review:
+        if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
                                             len(rec.k), t_ns=t), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
@@ -665,7 +682,10 @@ class GraphBuilder:
         mix = self.mixture
         uwb = self.cfg.uwb
         t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
-        sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
+        if self.robust_online:
+            sig_l = self.smoothed_sigma_los or self.robust_sigma()
+        else:
+            sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         out = []
         w_l = 1.0 - g
         if w_l > MIN_WEIGHT:
@@ -750,6 +770,40 @@ class GraphBuilder:
         s = robust_los_sigma(rr[:, 0], gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.mixture.sigma_los = s
+
+    def robust_sigma(self) -> float:
+        """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual|."""
+        s = NORMAL_MAD_SCALE * float(np.nanmedian(self._abs_r))
+        return float(np.clip(s, SIGMA_LOS_MIN, 1.0)) if math.isfinite(s) else self.cfg.uwb.sigma
+
+    def _prequential_choice(
+        self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
+    ) -> None:
+        """Score the new ranges (before they are used) under both range models and weight
+        the ranges to come by the better one so far: the online counterpart of batch's
+        held-out choice (`graph.range_model`). Scored once the robust sigma has
+        MIN_PREQUENTIAL_RANGES residuals behind it."""
+        if self.g.range_model == "mixture":
+            return
+        n = len(r_los)
+        idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
+        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES or self.g.range_model != "auto":
+            p = np.clip(prior, 1e-3, 1.0 - 1e-3)
+            lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
+            lp_rob = np.logaddexp(huber_log_density(r_los, self.robust_sigma(),
+                                                    self.cfg.uwb.kernel_threshold), LOG_OUTLIER)
+            self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+        self._abs_r[idx] = np.abs(r_los)
+        self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
+        self.prequential_n += n
+        robust = (self.g.range_model != "auto" or (
+            self.prequential_n >= 2 * MIN_PREQUENTIAL_RANGES
+            and self.prequential[1] > self.prequential[0]))
+        if robust != self.robust_online:
+            log.info("online range model: %s (prequential score mixture %.1f, robust %.1f "
+                     "nats over %d ranges)", "robust" if robust else "mixture",
+                     self.prequential[0], self.prequential[1], self.prequential_n)
+        self.robust_online = robust
 
     def add_smoothed_residuals(self, r_los: np.ndarray, g: np.ndarray) -> None:
         """Update `smoothed_sigma_los` from LOS residuals (m) at the smoothed estimate and

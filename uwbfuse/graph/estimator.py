@@ -658,6 +658,11 @@ class GraphEstimator:
                                "sigma_nlos": mix.sigma_nlos, "p_nlos": mix.p_nlos}
         if self._batch is None:  # online: sigma_los is the one-step prediction's
             out["nlos_mixture"]["sigma_los_smoothed"] = b.smoothed_sigma_los
+        out["online_range_model"] = {
+            "model": "robust" if b.robust_online else "mixture",
+            "prequential_log_score": {"mixture": float(b.prequential[0]),
+                                      "robust": float(b.prequential[1])},
+            "ranges": b.prequential_n}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out

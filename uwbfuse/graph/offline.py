@@ -36,6 +36,7 @@ from uwbfuse.graph.uwb import (
     SIGMA_LOS_MIN,
     NlosModel,
     hmm_smooth,
+    huber_log_density,
     los_bias_key,
     los_subset_search,
     nlos_state_factors,
@@ -514,15 +515,6 @@ def _nearest_responsibility(
     return out
 
 
-def _huber_log_density(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
-    """log of the normalised Huber density (Gaussian core, exponential tails beyond k
-    sigmas) of residuals r (m)."""
-    u = np.abs(r) / sigma
-    rho = np.where(u <= k, 0.5 * u * u, k * u - 0.5 * k * k)
-    z = math.sqrt(2.0 * math.pi) * math.erf(k / math.sqrt(2.0)) + 2.0 * math.exp(-0.5 * k * k) / k
-    return -rho - math.log(sigma * z)
-
-
 def heldout_log_score(
     fit: BatchResult, train: dict[str, np.ndarray], test: dict[str, np.ndarray],
     anchors: np.ndarray, n_kf: int, cfg: Config, t0_ns: int,
@@ -540,7 +532,7 @@ def heldout_log_score(
     mix = fit.mixture
     if fit.range_model == "robust" or fit.nlos_states is None:
         if cfg.uwb.robust_kernel.value == "huber":
-            ll = _huber_log_density(r_los, mix.sigma_los, cfg.uwb.kernel_threshold)
+            ll = huber_log_density(r_los, mix.sigma_los, cfg.uwb.kernel_threshold)
         else:
             ll = (-0.5 * (r_los / mix.sigma_los) ** 2 - math.log(mix.sigma_los)
                   - 0.5 * math.log(2.0 * math.pi))

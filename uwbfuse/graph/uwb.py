@@ -112,6 +112,15 @@ class NlosModel:
         self.p_nlos = float(np.clip(p, 0.02, 0.9))
 
 
+def huber_log_density(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
+    """log of the normalised Huber density (Gaussian core, exponential tails beyond k
+    sigmas) of residuals r (m): the predictive density of the robust range model."""
+    u = np.abs(r) / sigma
+    rho = np.where(u <= k, 0.5 * u * u, k * u - 0.5 * k * k)
+    z = math.sqrt(2.0 * math.pi) * math.erf(k / math.sqrt(2.0)) + 2.0 * math.exp(-0.5 * k * k) / k
+    return -rho - math.log(sigma * z)
+
+
 def jump_log_likelihoods(
     delta: np.ndarray, excess: np.ndarray, model: NlosModel
 ) -> np.ndarray:
