@@ -38,8 +38,11 @@ class ProgressBar:
         width: int = 24,
         min_interval_s: float = 2.0,
         enabled: bool = True,
+        unit: str = "",
     ) -> None:
         self.label = label
+        self.unit = unit
+        self._last_note = ""
         self.stream = stream if stream is not None else sys.stderr
         self.width = width
         self.min_interval_s = min_interval_s
@@ -56,6 +59,7 @@ class ProgressBar:
         filled = min(self.width, round(frac * self.width))
         elapsed = time.monotonic() - self._start
         text = f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {done}/{total}"
+        text += f" {self.unit}" if self.unit else ""
         text += f" {_format_duration(elapsed)}"
         first = self._first_done if self._first_done is not None else done
         if 0 < done - first and done < total:
@@ -73,9 +77,12 @@ class ProgressBar:
             self._first_done = done
         now = time.monotonic()
         last = done >= total
-        if not last and now - self._last_draw < (0.1 if self._tty else self.min_interval_s):
+        new_note = note != self._last_note
+        if (not last and not new_note
+                and now - self._last_draw < (0.1 if self._tty else self.min_interval_s)):
             return
         self._last_draw = now
+        self._last_note = note
         line = self.render(done, total, note)
         if self._tty:
             cols = 120
