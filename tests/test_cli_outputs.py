@@ -231,3 +231,21 @@ def test_did_you_mean_for_config(
     assert main(["run", str(SAMPLE), "--method", "odom", "--config", str(cfg),
                  "-o", str(tmp_path / "e.tum")]) == 2
     assert hint in capsys.readouterr().err
+
+
+def test_compare_progress_names_each_method() -> None:
+    """test that compare's progress counts each method's seconds of log, the note naming it."""
+    from uwbfuse.compare import run_methods
+    from uwbfuse.config import Config
+    from uwbfuse.estimator import Method
+    from uwbfuse.sim.simulator import simulate
+
+    calls: list[tuple[int, int, str]] = []
+    log = simulate("room", duration_s=5.0, seed=1)
+    rows = run_methods(log, [Method.ODOM, Method.IMU], Config(), 0.05,
+                       progress=lambda d, t, n: calls.append((d, t, n)))
+    assert [r.status for r in rows] == ["ok", "ok"]
+    for name in ("odom", "imu"):
+        mine = [c for c in calls if c[2].split()[0] == name]
+        assert mine[0][0] == 0 and mine[-1][0] == mine[-1][1] == 6  # 5 s of log + finish
+        assert any(c[2] == f"{name} finishing" for c in mine)

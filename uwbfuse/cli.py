@@ -73,7 +73,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _default_tum_path(log_path: str, method: str) -> Path:
-    stem = Path(log_path.rstrip("/")).name.removesuffix(".mcap")
+    stem = Path(log_path.rstrip("/")).name.removesuffix(".mcap").removesuffix(".db3")
     return Path(f"{stem}.{method}.tum")
 
 

@@ -13,9 +13,9 @@ from uwbfuse.streams import PoseStream
 
 
 def is_log_path(path: str | Path) -> bool:
-    """True for a LOG argument (an .mcap file or a rosbag2 directory), False for TUM."""
+    """True for a LOG argument (an .mcap or .db3 file or a rosbag2 directory), False for TUM."""
     p = Path(path)
-    return p.is_dir() or p.suffix.lower() == ".mcap"
+    return p.is_dir() or p.suffix.lower() in (".mcap", ".db3")
 
 
 def read_ground_truth(gt: str | Path, config: Config | None = None) -> PoseStream:
