@@ -144,3 +144,70 @@ def test_real_isas_bag_converted_reads_the_same(tmp_path: Path, storage: str, mo
     assert len(got.ranges) > 1000
     assert got.report.messages == want.report.messages
     assert got.report.skipped == want.report.skipped
+
+
+def _bomb(n_mib: int = 80) -> bytes:
+    """zstd data of a few KB that decompresses to `n_mib` MiB of zeros."""
+    import zstandard
+
+    c = zstandard.ZstdCompressor().compressobj()
+    block = b"\0" * (1 << 20)
+    return b"".join(c.compress(block) for _ in range(n_mib)) + c.flush()
+
+
+def test_file_compressed_bomb_is_refused(tmp_path: Path, sim: SensorLog) -> None:
+    """test that an .mcap.zstd decompressing past 1000x its size is a one-line error."""
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "mcap", "file")
+    (f,) = bag.glob("*.zstd")
+    f.write_bytes(_bomb())
+    with pytest.raises(LogReadError, match="zstd bomb") as e:
+        read_log(bag, Config())
+    assert "\n" not in str(e.value)
+
+
+def test_message_compressed_db3_skips_bombs_and_corrupt_payloads(
+    tmp_path: Path, sim: SensorLog
+) -> None:
+    """test a message-compressed db3 with one bomb and one corrupt payload among the IMU
+    messages: both skipped with a warning, everything else read."""
+    import zstandard
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    z = zstandard.ZstdCompressor()
+    hostile = {3: _bomb(), 5: b"not zstd"}
+    bag = tmp_path / "bag"
+    with _writer(bag, "sqlite3", "") as w:
+        for topic, type_name, stamps, datas in _encode_streams(sim, Config().topics):
+            conn = w.add_connection(topic, type_name, typestore=ts)
+            for k, (t, d) in enumerate(zip(stamps.tolist(), datas, strict=True)):
+                bad = hostile.get(k) if topic == "/imu" else None
+                w.write(conn, t, bad if bad is not None else z.compress(d))
+    meta = bag / "metadata.yaml"
+    text = meta.read_text().replace("compression_mode: ''", "compression_mode: message")
+    meta.write_text(text.replace("compression_format: ''", "compression_format: zstd"))
+    assert open_bag(bag).compression_mode == "message"
+    got = read_log(bag, _anchor_config(sim))
+    assert len(got.imu) == len(sim.imu) - 2
+    np.testing.assert_array_equal(got.imu.t_ns, np.delete(sim.imu.t_ns, [3, 5]))
+    assert any("2 messages on /imu skipped" in w for w in got.report.warnings)
+    assert len(got.ranges) == len(sim.ranges)
+
+
+def test_db3_without_message_definitions_uses_the_type_store(
+    tmp_path: Path, sim: SensorLog
+) -> None:
+    """test a db3 of schema version 3 (no message_definitions table, as Humble recorded)."""
+    import sqlite3
+
+    cfg = _anchor_config(sim)
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "sqlite3", "")
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("DROP TABLE message_definitions")
+        db.execute("UPDATE schema SET schema_version = 3")
+    ref = tmp_path / "ref.mcap"
+    write_contract_log(ref, sim)
+    assert_same_log(read_log(bag, cfg), read_log(ref, cfg))

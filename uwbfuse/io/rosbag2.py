@@ -6,10 +6,11 @@ library, parsed with a YAML parser) and the storage files it lists under
 `relative_file_paths`, read in that order. Where the fast vectorised MCAP scan applies
 (storage `mcap`, no compression or per-file zstd compression `x.mcap.zstd`) it is used;
 per-message zstd compression (`compression_mode: message`) decompresses each payload before
-the same scan hands it on; `sqlite3` storage (`.db3`, plain or compressed) is read through
-`rosbags.rosbag2.Reader`, with schemas from the bag's embedded message definitions (or the
-`rosbags` type store for bags recorded without them). Every path ends in the same
-`ScanResult`s, so the reader decodes messages the same way whatever the storage.
+the same scan hands it on; `sqlite3` storage (`.db3`, plain or compressed) is read with
+`rosbags`' Sqlite3Reader, with schemas from the bag's embedded message definitions (or the
+`rosbags` type store for bags recorded without them). Decompression is done here, bounded
+against zstd bombs (`MAX_RATIO`). Every path ends in the same `ScanResult`s, so the reader
+decodes messages the same way whatever the storage.
 """
 
 from __future__ import annotations
@@ -17,9 +18,12 @@ from __future__ import annotations
 import io
 import mmap
 import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -40,6 +44,8 @@ STORAGE_SQLITE = "sqlite3"
 _SUFFIX = {".mcap": STORAGE_MCAP, ".db3": STORAGE_SQLITE}
 MAX_METADATA_BYTES = 16 * 1024 * 1024  # a metadata.yaml is ~1 KB per topic; bigger is not one
 MAX_MESSAGE_BYTES = 256 * 1024 * 1024  # one decompressed message; a 4K image is ~25 MB
+MAX_RATIO = 1000  # decompressed / compressed bytes: sensor data packs 2-20x, a zstd bomb ~10^4x
+MIN_CAP = 64 * 1024 * 1024  # bytes always allowed, whatever the ratio (tiny inputs)
 _BLOCK = 16384  # messages handed to a sink at once (bounds the per-block arrays)
 
 
@@ -140,15 +146,37 @@ def log_files(path: str | Path) -> list[Path]:
     return list(open_bag(path).files)
 
 
+def _cap(compressed: int) -> int:
+    """Most bytes `compressed` bytes may decompress to before they count as a bomb."""
+    return max(MIN_CAP, MAX_RATIO * compressed)
+
+
+def _unzstd_file(path: Path, out: IO[bytes]) -> None:
+    """Stream the zstd file `path` into `out`, refusing more than `_cap` bytes."""
+    import zstandard
+
+    try:
+        size = path.stat().st_size
+        cap, done = _cap(size), 0
+        with path.open("rb") as f, zstandard.ZstdDecompressor().stream_reader(f) as r:
+            while block := r.read(1 << 20):
+                done += len(block)
+                if done > cap:
+                    raise LogReadError(f"{path}: decompresses to more than {cap} bytes "
+                                       f"({MAX_RATIO}x its {size}); refused as a zstd bomb")
+                out.write(block)
+    except zstandard.ZstdError as e:
+        raise LogReadError(f"{path}: cannot decompress: {e}") from None
+    except OSError as e:
+        raise LogReadError(f"{path}: cannot read: {e.strerror or e}") from None
+
+
 def read_bytes(path: Path) -> bytes | mmap.mmap:
     """The MCAP bytes of `path`: memory-mapped (read-only); a `.zstd` file decompressed whole."""
     if path.suffix == ".zstd":
-        import zstandard
-
-        try:
-            return zstandard.ZstdDecompressor().decompressobj().decompress(path.read_bytes())
-        except zstandard.ZstdError as e:
-            raise LogReadError(f"{path}: cannot decompress: {e}") from None
+        buf = io.BytesIO()
+        _unzstd_file(path, buf)
+        return buf.getvalue()
     try:
         with path.open("rb") as f:
             if os.fstat(f.fileno()).st_size == 0:
@@ -175,9 +203,11 @@ def message_refs(datas: list[bytes], log_time: np.ndarray) -> MessageRefs:
 
 
 def unzstd(data: bytes, limit: int = MAX_MESSAGE_BYTES) -> bytes | None:
-    """One zstd-compressed payload, decompressed; None if corrupt or over `limit` bytes."""
+    """One zstd-compressed payload, decompressed; None if corrupt, over `limit` bytes or
+    over `MAX_RATIO` times its size (a bomb)."""
     import zstandard
 
+    limit = min(limit, _cap(len(data)))
     try:
         with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data)) as r:
             out = r.read(limit + 1)
@@ -232,55 +262,105 @@ def _schema(conn: Any, typestore: Any) -> RawSchema | None:
     return RawSchema(conn.id, conn.msgtype, "ros2msg", text.encode())
 
 
-def _scan_rosbags(bag: Bag, want: WantFn) -> ScanResult:
-    """All messages of `bag` through `rosbags.rosbag2.Reader` (sqlite3 storage)."""
-    import sqlite3
+@contextmanager
+def _plain_file(f: Path, bag: Bag) -> Iterator[Path]:
+    """`f` itself, or (file compression) its bounded decompression in a temporary folder."""
+    if bag.compression_mode != "file":
+        yield f
+        return
+    with tempfile.TemporaryDirectory(prefix="uwbfuse-bag-") as tmp:
+        plain = Path(tmp) / f.name.removesuffix(".zstd")
+        with plain.open("wb") as out:
+            _unzstd_file(f, out)
+        yield plain
 
-    from rosbags.rosbag2 import Reader
-    from rosbags.rosbag2.errors import ReaderError
-    from rosbags.typesys import Stores, get_typestore
 
-    result = ScanResult(path=bag.source)
-    try:
-        with Reader(bag.source) as reader:
-            store = get_typestore(Stores.LATEST)
-            sinks: dict[int, Sink] = {}
-            for conn in reader.connections:
-                channel = RawChannel(conn.id, conn.topic, "cdr", _schema(conn, store))
-                sink = want(channel)
-                result.channels[conn.id] = ChannelMessages(
-                    channel, count=0 if sink is not None else int(conn.msgcount), sink=sink)
-                if sink is not None:
-                    sinks[conn.id] = sink
-            wanted = [c for c in reader.connections if c.id in sinks]
+class _SqliteScan:
+    """The messages of sqlite3 storage files, through `rosbags`' Sqlite3Reader."""
+
+    def __init__(self, bag: Bag, want: WantFn) -> None:
+        from rosbags.typesys import Stores, get_typestore
+
+        self.bag = bag
+        self.want = want
+        self.store = get_typestore(Stores.LATEST)
+        self.result = ScanResult(path=bag.source)
+        self.ids: dict[tuple[str, str], int] = {}  # (topic, type) -> channel id over files
+        self.sinks: dict[int, Sink] = {}
+        self.failed: dict[str, int] = {}
+
+    def _channel(self, conn: Any) -> int:
+        key = (conn.topic, conn.msgtype)
+        if key not in self.ids:
+            cid = self.ids[key] = len(self.ids) + 1
+            channel = RawChannel(cid, conn.topic, "cdr", _schema(conn, self.store))
+            sink = self.want(channel)
+            self.result.channels[cid] = ChannelMessages(channel, sink=sink)
+            if sink is not None:
+                self.sinks[cid] = sink
+        return self.ids[key]
+
+    def _flush(self, cid: int, times: list[int], datas: list[bytes]) -> None:
+        if self.bag.compression_mode == "message":
+            plain = [unzstd(d) for d in datas]
+            ok = [d is not None for d in plain]
+            bad = len(ok) - sum(ok)
+            if bad:
+                topic = self.result.channels[cid].channel.topic
+                self.failed[topic] = self.failed.get(topic, 0) + bad
+            times = [t for t, k in zip(times, ok, strict=True) if k]
+            datas = [d for d in plain if d is not None]
+        self.result.channels[cid].count += len(datas)
+        if datas:
+            self.sinks[cid].add(message_refs(datas, np.asarray(times, dtype=np.int64)))
+
+    def file(self, path: Path) -> None:
+        from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
+
+        storage = Sqlite3Reader(path)
+        storage.open()
+        try:
+            ids = {conn.id: self._channel(conn) for conn in storage.connections}
+            wanted = [c for c in storage.connections if ids[c.id] in self.sinks]
+            for conn in storage.connections:
+                if ids[conn.id] not in self.sinks:
+                    self.result.channels[ids[conn.id]].count += int(conn.msgcount)
             pending: dict[int, tuple[list[int], list[bytes]]] = {}
-
-            def flush(cid: int) -> None:
-                times, datas = pending.pop(cid)
-                result.channels[cid].count += len(datas)
-                sinks[cid].add(message_refs(datas, np.asarray(times, dtype=np.int64)))
-
-            for conn, t, data in reader.messages(connections=wanted) if wanted else ():
-                times, datas = pending.setdefault(conn.id, ([], []))
+            for conn, t, data in storage.messages(wanted) if wanted else ():
+                times, datas = pending.setdefault(ids[conn.id], ([], []))
                 times.append(t)
                 datas.append(data)
                 if len(datas) >= _BLOCK:
-                    flush(conn.id)
-            for cid in list(pending):
-                flush(cid)
-    except (ReaderError, sqlite3.Error, OSError, KeyError, ValueError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise LogReadError(f"{bag.source}: cannot read rosbag2 ({bag.storage}): {first}"
-                           ) from None
-    result.complete = True
-    return result
+                    self._flush(ids[conn.id], *pending.pop(ids[conn.id]))
+            for cid, (times, datas) in pending.items():
+                self._flush(cid, times, datas)
+        finally:
+            storage.close()
+
+    def scan(self) -> ScanResult:
+        import apsw
+        from rosbags.rosbag2.errors import ReaderError
+
+        for f in self.bag.files:
+            try:
+                with _plain_file(f, self.bag) as plain:
+                    self.file(plain)
+            except (ReaderError, apsw.Error, KeyError, ValueError) as e:
+                text = str(e).strip()
+                first = text.splitlines()[0] if text else type(e).__name__
+                raise LogReadError(f"{f}: cannot read sqlite3 storage: {first}") from None
+        for topic, n in self.failed.items():
+            self.result.warnings.append(f"{n} messages on {topic} skipped: their zstd "
+                                        "message compression does not decompress")
+        self.result.complete = True
+        return self.result
 
 
 def scan_log(path: str | Path, want: WantFn) -> list[ScanResult]:
     """Scan every storage file of LOG `path`, handing wanted channels' messages to sinks."""
     bag = open_bag(path)
     if bag.storage == STORAGE_SQLITE:
-        return [_scan_rosbags(bag, want)]
+        return [_SqliteScan(bag, want).scan()]
     if bag.compression_mode == "message":
         return [_scan_message_compressed(f, want) for f in bag.files]
     return [scan_mcap(f, want, read_bytes(f)) for f in bag.files]
