@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""One small progress bar for the command line, over a known number of jobs.
+"""One small progress bar for the command line, over a known number of jobs (or seconds).
 
 Library functions take a `ProgressFn` callback (`progress(done, total, note)`) and never
 write to the terminal themselves; the CLI passes a `ProgressBar`, which draws on stderr:
@@ -9,6 +9,7 @@ always the last) when stderr is a file or a pipe, as in CI logs. No dependency.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -85,7 +86,7 @@ class ProgressBar:
         self._last_note = note
         line = self.render(done, total, note)
         if self._tty:
-            cols = 120
+            cols = shutil.get_terminal_size((120, 24)).columns
             self.stream.write("\r" + line[: cols - 1].ljust(cols - 1))
             self._drawn_inline = not last
             if last:
