@@ -78,7 +78,7 @@ class ProgressBar:
             self._first_done = done
         now = time.monotonic()
         last = done >= total
-        new_note = note != self._last_note
+        new_note = self._tty and note != self._last_note  # e.g. "finishing": redraw in place
         if (not last and not new_note
                 and now - self._last_draw < (0.1 if self._tty else self.min_interval_s)):
             return
