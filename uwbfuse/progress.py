@@ -51,6 +51,7 @@ class ProgressBar:
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._start = time.monotonic()
         self._first_done: int | None = None
+        self._prev_done = 0
         self._last_draw = -float("inf")
         self._drawn_inline = False
 
@@ -74,8 +75,10 @@ class ProgressBar:
     def __call__(self, done: int, total: int, note: str = "") -> None:
         if not self.enabled:
             return
-        if self._first_done is None:
+        if self._first_done is None or done < self._prev_done:  # a new pass (next method)
             self._first_done = done
+            self._start = time.monotonic()
+        self._prev_done = done
         now = time.monotonic()
         last = done >= total
         new_note = self._tty and note != self._last_note  # e.g. "finishing": redraw in place
