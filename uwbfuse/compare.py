@@ -23,7 +23,9 @@ from uwbfuse.errors import ConfigError, UwbfuseError
 from uwbfuse.estimator import Method, RangeClasses
 from uwbfuse.eval.evaluate import EvalResult, RpeResult, evaluate
 from uwbfuse.io.atomic import write_atomic
+from uwbfuse.progress import ProgressFn
 from uwbfuse.streams import PoseStream, SensorLog
+from uwbfuse.suggest import did_you_mean
 
 log = logging.getLogger(__name__)
 
@@ -118,11 +120,20 @@ def parse_methods(methods: str | list[str]) -> list[Method]:
         try:
             out.append(Method(name))
         except ValueError:
-            known = ", ".join(m.value for m in Method)
-            raise ConfigError(f"--methods: unknown method {name!r} (one of: {known})") from None
+            known = [m.value for m in Method]
+            raise ConfigError(f"--methods: unknown method {name!r}"
+                              f"{did_you_mean(name, known)} (one of: {', '.join(known)})"
+                              ) from None
     if not out:
         raise ConfigError("--methods: no method given")
     return out
+
+
+def _named(progress: ProgressFn | None, name: str) -> ProgressFn | None:
+    """`progress` with `name` put before each note."""
+    if progress is None:
+        return None
+    return lambda done, total, note: progress(done, total, f"{name} {note}".strip())
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -132,17 +143,18 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 def run_methods(
     log_data: SensorLog, methods: list[Method], config: Config, max_dt: float,
-    align: str = "none",
+    align: str = "none", progress: ProgressFn | None = None,
 ) -> list[MethodRow]:
     """Run each method on the already-read log and score it against its ground truth
-    (`align`: none | se2 | se3, for ground truth in another frame)."""
+    (`align`: none | se2 | se3, for ground truth in another frame); `progress` is told
+    each method's seconds of log processed, the note naming the method."""
     from uwbfuse.pipeline import estimate
 
     rows = []
     gt = log_data.ground_truth
     for method in methods:
         try:
-            res = estimate(log_data, method, config)
+            res = estimate(log_data, method, config, _named(progress, method.value))
         except UwbfuseError as e:
             log.warning("%s failed: %s", method.value, e)
             rows.append(MethodRow(method.value, "failed", error=str(e)))
@@ -189,6 +201,7 @@ def compare_log(
     gt_path: str | Path | None = None,
     align: str = "none",
     html: bool = False,
+    progress: ProgressFn | None = None,
 ) -> CompareResult:
     """Run `methods` on the log, write table, trajectories, plots and config to `out_dir`.
 
@@ -212,7 +225,7 @@ def compare_log(
         log_data.ground_truth = read_tum(gt_path)
     # Estimates come at the output rate; associate within half an output period.
     tol = max_dt if max_dt is not None else 0.5 / config.output.rate
-    rows = run_methods(log_data, method_list, config, tol, align)
+    rows = run_methods(log_data, method_list, config, tol, align, progress)
     plot_log = _gt_in_map_frame(log_data, rows) if align != "none" else log_data
 
     result = CompareResult(str(log_path), rows, out)

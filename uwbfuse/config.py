@@ -351,6 +351,18 @@ def _is_union_tag(part: object) -> bool:
     return isinstance(part, str) and ("[" in part or part in {"bool", "int", "float", "str"})
 
 
+def _known_keys(loc: tuple[Any, ...]) -> list[str]:
+    """The keys allowed inside the table at `loc` (sections at the top level)."""
+    model: type[BaseModel] = Config
+    for part in loc:
+        f = model.model_fields.get(str(part))
+        ann = None if f is None else f.annotation
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return []
+        model = ann
+    return list(model.model_fields)
+
+
 def _format_validation_error(source: str, err: ValidationError) -> str:
     errors = err.errors()
     first = errors[0]
@@ -365,7 +377,11 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
         msg = " or ".join(e["msg"] for e in same)
     key = ".".join(str(p) for p in loc)
     if first["type"] == "extra_forbidden":
-        return f"{source}: unknown config key '{key}'"
+        from uwbfuse.suggest import did_you_mean
+
+        what = "section" if len(loc) == 1 else "key"
+        return (f"{source}: unknown config {what} '{key}'"
+                f"{did_you_mean(str(loc[-1]), _known_keys(loc[:-1]))}")
     return f"{source}: bad value for '{key}': {msg}"
 
 

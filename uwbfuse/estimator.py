@@ -14,6 +14,7 @@ Poses are the base frame in the map frame (anchor frame, z up); quaternions (x, 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
@@ -263,11 +264,16 @@ def _poses_to_stream(poses: list[PoseEstimate]) -> PoseStream:
     )
 
 
-def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> StreamingResult:
+def run_streaming(
+    estimator: Estimator, log: SensorLog, epochs: np.ndarray,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> StreamingResult:
     """Feed `log` to `estimator` epoch by epoch; collect the causal pose at every epoch.
 
     For each epoch t_k the data with stamps in (t_{k-1}, t_k] is added stream by stream,
-    then `step(t_k)` is called and timed (the per-update latency).
+    then `step(t_k)` is called and timed (the per-update latency). `progress(done, total,
+    note)` is told the whole seconds of log processed, out of the log's span plus one for
+    `finish()` (it limits its own redraw rate).
     """
     streams = []
     if log.imu is not None and len(log.imu):
@@ -286,6 +292,7 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
     starts = [0] * len(streams)
     poses: list[PoseEstimate] = []
     latency = np.empty(len(epochs))
+    span_s = int((epochs[-1] - epochs[0]) // NS_PER_S) if len(epochs) else 0
     wall0 = time.perf_counter()
     for k, t in enumerate(epochs):
         for i, (add, cols, ends) in enumerate(streams):
@@ -296,6 +303,8 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
         tic = time.perf_counter()
         estimator.step(int(t))
         latency[k] = time.perf_counter() - tic
+        if progress is not None:
+            progress(int((t - epochs[0]) // NS_PER_S), span_s + 1, "")
         est = estimator.estimate()
         if est is not None:
             if est.t_ns != t:
@@ -304,7 +313,11 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
                     f"{est.t_ns} ns at epoch {int(t)} ns (must be the step time)"
                 )
             poses.append(est)
+    if progress is not None:
+        progress(span_s, span_s + 1, "finishing")
     final = estimator.finish()
     wall = time.perf_counter() - wall0
+    if progress is not None:
+        progress(span_s + 1, span_s + 1, "")
     return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report(),
                            range_classes_of(estimator))
