@@ -773,8 +773,10 @@ class GraphBuilder:
 
     def robust_sigma(self) -> float:
         """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual|."""
-        s = NORMAL_MAD_SCALE * float(np.nanmedian(self._abs_r))
-        return float(np.clip(s, SIGMA_LOS_MIN, 1.0)) if math.isfinite(s) else self.cfg.uwb.sigma
+        seen = self._abs_r[np.isfinite(self._abs_r)]
+        if len(seen) == 0:
+            return self.cfg.uwb.sigma
+        return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
 
     def _prequential_choice(
         self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
