@@ -778,6 +778,15 @@ class GraphBuilder:
             return self.cfg.uwb.sigma
         return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
 
+    def prequential_verdict(self) -> str | None:
+        """"mixture" or "robust" once the prequential scores could decide (auto), else
+        None (too few ranges, or a configured model)."""
+        if self.g.range_model != "auto" or not self.nlos:
+            return None
+        if self.prequential_n < 2 * MIN_PREQUENTIAL_RANGES:
+            return None
+        return "robust" if self.robust_online else "mixture"
+
     def _prequential_choice(
         self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
     ) -> None:

@@ -525,7 +525,8 @@ class GraphEstimator:
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
                                     has_wheel=b.has_wheel, with_scale=b.with_scale,
-                                    wheel=b.wheel_records)
+                                    wheel=b.wheel_records,
+                                    online_verdict=b.prequential_verdict())
 
     def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""
