@@ -276,6 +276,7 @@ class GraphBuilder:
         # LOS sigma of the range factors, from residuals at the smoothed estimate (the
         # mixture's is the one-step prediction's, wider by the prediction error)
         self.smoothed_sigma_los: float | None = None
+        self.smoothed_robust_sigma: float | None = None  # the same over all ranges, uncapped
         self._smoothed_window = ResidualWindow()
         m = len(anchors)
         self.anchor_p = np.full(m, self.mixture.p_nlos)
@@ -635,7 +636,10 @@ class GraphBuilder:
                     ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
                     None if jump is None else jump[sel])
             self._online_m_step(r_los, r_nlos, g)
-            self._prequential_choice(r_los, ll_l, ll_n, prior)
+            settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)
+            if np.any(settled):
+                self._prequential_choice(r_los[settled], ll_l[settled], ll_n[settled],
+                                         prior[settled])
             if self.robust_online:
                 g[:] = 0.0
         else:
@@ -683,7 +687,7 @@ class GraphBuilder:
         uwb = self.cfg.uwb
         t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
         if self.robust_online:
-            sig_l = self.smoothed_sigma_los or self.robust_sigma()
+            sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         out = []
@@ -792,8 +796,9 @@ class GraphBuilder:
     ) -> None:
         """Score the new ranges (before they are used) under both range models and weight
         the ranges to come by the better one so far: the online counterpart of batch's
-        held-out choice (`graph.range_model`). Scored once the robust sigma has
-        MIN_PREQUENTIAL_RANGES residuals behind it."""
+        held-out choice (`graph.range_model`). Only ranges a lag after the start are
+        scored (before, the one-step predictions come from a graph still settling its
+        start), once the robust sigma has MIN_PREQUENTIAL_RANGES residuals behind it."""
         if self.g.range_model == "mixture":
             return
         n = len(r_los)
@@ -830,6 +835,9 @@ class GraphBuilder:
         s = robust_los_sigma(rr, gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.smoothed_sigma_los = s
+        if len(rr) >= MIN_PREQUENTIAL_RANGES:  # the robust model's: every range, no cap
+            mad = NORMAL_MAD_SCALE * float(np.median(np.abs(rr - np.median(rr))))
+            self.smoothed_robust_sigma = float(np.clip(mad, SIGMA_LOS_MIN, 1.0))
 
     def _record(self, inc: Increment) -> None:
         if self.record and self.full_graph is not None and self.full_values is not None:
