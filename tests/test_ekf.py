@@ -308,7 +308,7 @@ def test_ekf_on_plaza2_uses_the_start_range_scale() -> None:
 def test_ekf_on_plaza1_answers_from_the_first_motion() -> None:
     """test that the EKF starts on Plaza1, whose ranges (one anchor every half second) give
     multilateration no fix: the standstill fix, held, then the wheel-track start
-    (`graph.sparse_start`) cover the log from the first motion (contract)"""
+    (`positioning.sparse_start`) cover the log from the first motion (contract)"""
     from uwbfuse.errors import LogReadError
     from uwbfuse.graph.plaza import plaza_log, plaza_path
 

@@ -75,10 +75,10 @@ def default_initialiser(
     config: Config, anchors: AnchorMap, streams: frozenset[str]
 ) -> InitialiserLike:
     """The project's initialiser (UWB multilateration + IMU levelling, and the start from
-    sparse ranges that the graph uses too: `graph.sparse_start`), imported lazily."""
+    sparse ranges that the graph uses too: `positioning.sparse_start`), imported lazily."""
     try:
-        from uwbfuse.graph.sparse_start import SparseStartInitialiser
         from uwbfuse.positioning.initialisation import Initialiser
+        from uwbfuse.positioning.sparse_start import SparseStartInitialiser
     except ImportError as exc:  # pragma: no cover - only while the module is missing
         raise EstimatorError(f"filter initialiser unavailable: {exc}") from exc
     # the filters take the wheel-track start only where multilateration has no fix at all
