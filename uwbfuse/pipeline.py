@@ -18,7 +18,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError
 from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
-from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
+from uwbfuse.methods import REQUIRED_STREAMS, WITHOUT_RANGES, make_estimator
 from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,9 @@ def sensor_streams(log: SensorLog) -> frozenset[str]:
 def check_inputs(log: SensorLog, method: Method, config: Config) -> frozenset[str]:
     """Raise a one-line error if `log` lacks what `method` needs; return the streams."""
     streams = sensor_streams(log)
+    alone = WITHOUT_RANGES.get(method)
+    if "uwb" not in streams and alone is not None and alone <= streams:
+        return streams  # IMU + wheels without UWB: no anchor map needed
     if method.uses_ranges and log.anchors is None:
         raise AnchorMapError(
             f"{log.source}: no anchor map: give an [anchors] table in the config or a "
