@@ -29,11 +29,13 @@ out; the filters' divergence recovery (`base.StreamingFilter`) covers a state th
 by more than its covariance says.
 
 Wheel speeds and the planar floor constraint (`InnovationVariance`): covariance matching
-(Mehra 1970): for a consistent filter E[y^2] = h P h^T + r for every measurement row, so
-r = E[y^2 - h P h^T] over the recent rows of its kind, with the configured variance as a
-prior worth `PRIOR_ROWS` rows. A skid-steer vehicle that slips sideways in turns, or a
-floor that rolls the vehicle by 12 degrees, loosens its own constraint; encoders better
-than the configured default tighten theirs.
+(Mehra 1970): for a consistent filter E[y^2] = h P h^T + r for every measurement row, so r =
+E[y^2 - h P h^T] over the recent rows of its kind, with the configured variance as a prior
+worth `PRIOR_ROWS` rows. Each row counts at its positive part, max(y^2 - h P h^T, 0):
+conservative (biased high where the prediction variance dominates), which leaves room for
+errors the white model does not have (a wheel scale error, slip that lasts a turn). A skid-
+steer vehicle that slips sideways in turns, or a floor that rolls the vehicle by 12 degrees,
+loosens its own constraint; encoders better than the configured default tighten theirs.
 """
 
 from __future__ import annotations
@@ -61,6 +63,9 @@ PRIOR_RANGES = 200.0
 #: the running estimate (rows; exponential forgetting).
 PRIOR_ROWS = 200.0
 MEMORY_ROWS = 2000.0
+#: Floor of a matched variance as a share of the configured one: sampling noise can drive
+#: E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid.
+MIN_SHARE = 0.01
 #: Bounds of an anchor's prior NLOS probability (the chain never becomes certain).
 P_BOUNDS = (0.01, 0.99)
 
@@ -85,11 +90,10 @@ class RangeNoise:
         self._since = 0      # accepted ranges since the last refit
         self.refits = 0
 
-    def widen_los_prior(self, los_std: float) -> None:
+    def widen_los_start(self, los_std: float) -> None:
         """Take at least `los_std` (m; e.g. the start solve's residual spread, from the log)
-        as the LOS spread of the prior model until the first refit."""
-        if los_std > self.prior.los_std:
-            self.prior = replace(self.prior, los_std=float(los_std))
+        as the LOS spread until the first refit (the refits' prior stays `[wls]`)."""
+        if los_std > self.model.los_std:
             self.model = replace(self.model, los_std=float(los_std))
 
     def weigh(
@@ -173,7 +177,8 @@ class InnovationVariance:
         decay = (1.0 - 1.0 / MEMORY_ROWS) ** n
         self._num = decay * self._num + np.sum(np.maximum(y * y - s, 0.0), axis=0)
         self._den = decay * self._den + n
-        self.r = (self._num + PRIOR_ROWS * self.prior) / (self._den + PRIOR_ROWS)
+        r = (self._num + PRIOR_ROWS * self.prior) / (self._den + PRIOR_ROWS)
+        self.r = np.maximum(r, MIN_SHARE * self.prior)
 
 
 def scalar_update(

@@ -271,7 +271,7 @@ class StreamingFilter:
             self.t_init = int(state.t_ns)
             self._discard_until(self.t_init)
             # Ranges as the start solve saw them: its common scale (radios that read a few
-            # % long, e.g. Plaza), and at least its residual spread as the LOS prior.
+            # % long, e.g. Plaza), and at least its residual spread as the first LOS spread.
             # A scale within 2 % of 1 is the solve's noise, not the radios (DW1000 clocks
             # drift by ppm): applying it would bias long ranges by centimetres. (The graph
             # also asks for 0.5 m of effect, `range_scale_applies`; here that cost Labyrinth
@@ -279,7 +279,7 @@ class StreamingFilter:
             # scale at 1.9 m stands in for the radios' 0.1 m offset.)
             scale = float(state.range_scale)
             self._range_scale = scale if abs(scale - 1.0) > RANGE_SCALE_MIN_ERROR else 1.0
-            self.range_noise.widen_los_prior(float(state.range_sigma))
+            self.range_noise.widen_los_start(float(state.range_sigma))
             self._start(state)
             self.t_cur = self.t_init
         assert self.t_cur is not None

@@ -332,9 +332,9 @@ def fit_nlos_mixture(
         sg, sl = float(g.sum()), float(len(r) - g.sum())
         pi = float(np.clip((sg + n0 * prior.nlos_prior) / (len(r) + n0), 0.01, 0.95))
         mu = max((float(g @ r) + n0 * prior.nlos_mean) / (sg + n0), 0.0)
-        v_l = (float((1.0 - g) @ np.maximum(r * r - s, 0.0)) + n0 * prior.los_std**2) / (sl + n0)
+        v_l = (float((1.0 - g) @ (r * r - s)) + n0 * prior.los_std**2) / (sl + n0)
         d = r - mu
-        v_n = (float(g @ np.maximum(d * d - s, 0.0)) + n0 * prior.nlos_std**2) / (sg + n0)
-        los = float(np.clip(math.sqrt(v_l), _MIN_LOS_STD, _MAX_LOS_STD))
-        nstd = max(math.sqrt(v_n), los)
+        v_n = (float(g @ (d * d - s)) + n0 * prior.nlos_std**2) / (sg + n0)
+        los = float(np.clip(math.sqrt(max(v_l, 0.0)), _MIN_LOS_STD, _MAX_LOS_STD))
+        nstd = max(math.sqrt(max(v_n, 0.0)), los)
     return NlosParams(los, mu, nstd, pi)
