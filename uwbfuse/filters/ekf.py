@@ -9,15 +9,22 @@ widens it to the inputs the graph sees:
   base frame in the map frame (the paper's state has only planar dp, dv). Earth rate and
   transport rate (eq. 13-17) are dropped: they are far below a MEMS gyro's noise indoors.
 - Each UWB range is one scalar measurement of |p + R t_tag - anchor| (tag lever arm from
-  `extrinsics.tag_in_base`), not the paper's squared-range difference; chi-square gated
-  (`[ekf] gate_probability`, `gating`), counted per anchor in `report()`.
+  `extrinsics.tag_in_base`), not the paper's squared-range difference. The ranges of a
+  window are applied one after another (sequential scalar updates, after the wheel and
+  planar rows), each robustly weighted on its own innovation: LOS/NLOS mixture posterior
+  as the measurement, chi-square gate (`[ekf] gate_probability`, `gating`), the mixture
+  fitted to the log's innovations (`adaptive_noise.RangeNoise`); counted per anchor in
+  `report()`.
 - Wheel odometry is a base-frame velocity measurement: forward speed v with
   `wheel.sigma_v`, and zero lateral and vertical speed with `wheel.sigma_lateral`
   (non-holonomic). With wheels, the vehicle is on the floor: a soft planar constraint holds
   the base height and tilt (`graph.planar`, `planar_sigma_z`, `planar_sigma_tilt`, as the
-  graph uses them).
+  graph uses them). Those configured sigmas are priors: the variances follow the log's
+  innovations (`adaptive_noise.InnovationVariance`).
 - Without an IMU (UWB + wheels) the process is the planar unicycle driven by the wheels
-  (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D.
+  (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D. Without
+  UWB (IMU + wheels) it starts at the map origin, heading zero, as dead reckoning does.
+- `estimate()` carries the pose covariance from P (ROS order; `pose_covariance`).
 - Covariance updates in Joseph form.
 - Process noise: the `[imu]` densities and bias random walks times `[ekf]
   imu_noise_inflation` (default 30, the graph's figure for logs without wheels): a real

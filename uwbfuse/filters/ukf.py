@@ -19,8 +19,9 @@ mass with UWB position fixes and no LiDAR here):
   the IMU samples, all sigma points at once (`models.mechanise` is batched).
 - Without an IMU: the paper's odometer model (eq. 3, planar unicycle x, y, yaw) driven by
   the wheels.
-- UWB ranges are scalar measurements (tag lever arm included) with the EKF's chi-square
-  gate per range; wheel speeds are base-frame velocity measurements (forward v, zero
+- UWB ranges are scalar measurements (tag lever arm included), each weighted and gated
+  on its innovation and predicted variance as in the EKF (`adaptive_noise.RangeNoise`),
+  then updated together; wheel speeds are base-frame velocity measurements (forward v, zero
   lateral/vertical speed); soft planar height and roll/pitch constraint with wheels, as in
   the EKF.
 
