@@ -73,3 +73,15 @@ def test_uwb_only_methods_report_their_position_covariance(room: SensorLog,
     known = cov[:, 0, 0] < UNKNOWN_VARIANCE
     assert known.mean() > 0.9
     assert np.all(cov[known, 0, 0] < 0.05) and np.all(cov[known, 5, 5] == UNKNOWN_VARIANCE)
+
+
+def test_odom_covariance_grows_from_the_start(room: SensorLog) -> None:
+    """test that wheel dead reckoning (no anchors) reports x, y, yaw variances that start at
+    zero and grow with the distance driven, z and tilt unknown"""
+    log = SensorLog(wheel=room.wheel, source="sim")
+    cov = estimate(log, Method.ODOM, Config()).trajectory.covariance
+    assert cov is not None
+    assert cov[0, 0, 0] < 1e-6 and cov[0, 5, 5] < 1e-6
+    assert np.all(np.diff(cov[:, 5, 5]) >= 0.0)
+    assert cov[-1, 0, 0] + cov[-1, 1, 1] > 10 * (cov[len(cov) // 10, 0, 0] + 1e-9)
+    assert np.all(cov[:, 2, 2] == UNKNOWN_VARIANCE)
