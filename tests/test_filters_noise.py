@@ -56,13 +56,15 @@ def test_range_noise_learns_the_los_spread_from_innovations() -> None:
         y = rng.normal(0.0, 0.06, 100)
         s = np.full(100, 1e-4)
         _, _, ok, _ = noise.weigh(a, y, s)
-        noise.accept(a, y, s, ok)
+        noise.accept(a, y, s, ok, np.full(100, 3.0) + y)
     assert noise.refits >= 10
     # all-LOS data: the LOS std moves from 0.026 to the data's 0.059 m; the prior (worth 200
-    # ranges) keeps some mass in a weak NLOS component (measured 0.050 m, 18 %, +0.036 m)
+    # ranges) keeps some mass in a weak NLOS component (measured 0.050 m, 18 %)
     m = noise.model
     assert 0.045 < m.los_std < 0.065
-    assert m.nlos_prior < 0.25 and m.nlos_mean < 0.06
+    assert m.nlos_prior < 0.25
+    # the ranges fit the predictions without a scale: the common scale stays at 1
+    assert abs(noise.scale - 1.0) < 0.01
 
 
 def test_sequential_scalar_updates_equal_the_stacked_update() -> None:
@@ -82,7 +84,8 @@ def test_sequential_scalar_updates_equal_the_stacked_update() -> None:
     # the robust sequence with LOS-looking innovations changes P and records every range
     noise = RangeNoise(Config(), 2)
     p2, _, used, _ = sequential_ranges(noise, p, np.zeros(6), h[:2] * 0.01,
-                                     np.array([0.001, -0.002]), np.array([0, 1]))
+                                     np.array([0.001, -0.002]), np.array([0, 1]),
+                                     np.array([3.0, 4.0]))
     assert used.all() and np.all(np.diag(p2) <= np.diag(p) + 1e-12)
     assert noise._n == 2
 
@@ -99,3 +102,19 @@ def test_innovation_variance_matches_the_innovations() -> None:
     # the prior (200 rows) against the data's memory (2000 rows)
     expect = (2000 * np.array([0.2**2, 0.05**2]) + 200 * est.prior) / 2200
     np.testing.assert_allclose(est.r, expect, rtol=0.15)
+
+
+def test_range_scale_follows_the_innovations() -> None:
+    """test that ranges reading 3 % long under the current scale move the scale to 1.03"""
+    noise = RangeNoise(Config(), 4)
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        a = rng.integers(0, 4, 100)
+        d = rng.uniform(1.0, 8.0, 100)  # predicted (true) distances, m
+        meas = 1.03 * d  # ranges as read, m
+        z = meas / noise.scale  # as the filter applies the current scale
+        y = z - d + rng.normal(0.0, 0.02, 100)
+        s = np.full(100, 1e-4)
+        _, _, ok, _ = noise.weigh(a, y, s)
+        noise.accept(a, y, s, ok, z)
+    assert abs(noise.scale - 1.03) < 0.005

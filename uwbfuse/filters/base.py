@@ -34,7 +34,6 @@ from uwbfuse.filters.models import (
     imu_to_base,
     quat_xyzw_from_matrix,
 )
-from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
 from uwbfuse.streams import AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -171,7 +170,6 @@ class StreamingFilter:
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.range_noise = RangeNoise(config, len(anchors))
-        self._range_scale = 1.0  # common range scale solved by the initialiser (wheeled logs)
         self.gating = config.ekf.gating
         self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
         self.planar = self.has_wheel and config.graph.planar != "off"
@@ -271,15 +269,13 @@ class StreamingFilter:
             self.t_init = int(state.t_ns)
             self._discard_until(self.t_init)
             # Ranges as the start solve saw them: its common scale (radios that read a few
-            # % long, e.g. Plaza), and at least its residual spread as the first LOS spread.
-            # A scale within 2 % of 1 is the solve's noise, not the radios (DW1000 clocks
-            # drift by ppm): applying it would bias long ranges by centimetres. (The graph
-            # also asks for 0.5 m of effect, `range_scale_applies`; here that cost Labyrinth
-            # 0.122 -> 0.174 m: the filters have no range-offset states, and there a 2-5 %
-            # scale at 1.9 m stands in for the radios' 0.1 m offset.)
-            scale = float(state.range_scale)
-            self._range_scale = scale if abs(scale - 1.0) > RANGE_SCALE_MIN_ERROR else 1.0
-            self.range_noise.widen_los_start(float(state.range_sigma))
+            # % long, e.g. Plaza; refined from the innovations from then on, so a scale that
+            # is only the solve's noise does not stay), and at least its residual spread as
+            # the LOS spread's prior.
+            # (the height is held by the planar constraint, or fixed in the wheel-driven filter)
+            self.range_noise.set_start_scale(
+                float(state.range_scale), refine=self.planar or not self.has_imu)
+            self.range_noise.widen_los_prior(float(state.range_sigma))
             self._start(state)
             self.t_cur = self.t_init
         assert self.t_cur is not None
@@ -287,8 +283,8 @@ class StreamingFilter:
         if t_ns <= self.t_cur:
             return
         rt, ra, rr, wt, wv = self._measurements(t_ns)
-        if self._range_scale != 1.0:
-            rr = rr / self._range_scale
+        if self.range_noise.scale != 1.0:
+            rr = rr / self.range_noise.scale
         if t_ns - self.t_cur <= MAX_WINDOW_NS:  # one window (the 10 Hz output steps)
             used = self._window(t_ns, rt, ra, rr, wt, wv)
             if len(rt):

@@ -123,7 +123,7 @@ def _unscented_update(
         s_pred = np.diag(pzz)[:nr].copy()
         y_raw = y[:nr].copy()
         y[:nr], r[:nr], keep[:nr], nis = noise.weigh(anchor, y_raw, s_pred)
-        noise.accept(anchor, y_raw, s_pred, keep[:nr])
+        noise.accept(anchor, y_raw, s_pred, keep[:nr], z[:nr])
     start = nr
     s_all = np.diag(pzz)
     for est, n_rows in row_noise or ():

@@ -337,4 +337,5 @@ def fit_nlos_mixture(
         v_n = (float(g @ (d * d - s)) + n0 * prior.nlos_std**2) / (sg + n0)
         los = float(np.clip(math.sqrt(max(v_l, 0.0)), _MIN_LOS_STD, _MAX_LOS_STD))
         nstd = max(math.sqrt(max(v_n, 0.0)), los)
+
     return NlosParams(los, mu, nstd, pi)
