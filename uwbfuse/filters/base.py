@@ -171,7 +171,6 @@ class StreamingFilter:
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.range_noise = RangeNoise(config, len(anchors))
         self.gating = config.ekf.gating
-        self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
         self.planar = self.has_wheel and config.graph.planar != "off"
         self.initialiser = initialiser or default_initialiser(config, anchors, streams)
         self._init_pending = True
