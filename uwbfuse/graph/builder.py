@@ -45,6 +45,7 @@ from uwbfuse.graph.uwb import (
 )
 from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
 from uwbfuse.positioning.initialisation import range_scale_applies
+from uwbfuse.positioning.start import planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -226,18 +227,6 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
     mad = NORMAL_MAD_SCALE * float(np.median(np.abs(r - np.median(r))))
     s = math.sqrt((len(r) * mad**2 + n0 * prior**2) / (len(r) + n0))
     return min(max(s, SIGMA_LOS_MIN), prior)
-
-
-def planar_height(anchors: AnchorMap, z_start: float) -> float:
-    """Base height (m) held by the planar constraint.
-
-    When the anchors are (nearly) coplanar the ranges barely observe height, so a start
-    height solved from them is unreliable: the floor is then taken at the map frame's z = 0
-    (anchor heights are measured from the floor). With anchors spread over at least 1 m of
-    height the start height is used.
-    """
-    z = anchors.positions[:, 2]
-    return z_start if float(z.max() - z.min()) >= 1.0 else 0.0
 
 
 class GraphBuilder:

@@ -54,7 +54,6 @@ from uwbfuse.graph.imu import ImuBuffer
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
-from uwbfuse.graph.sparse_start import SparseStartInitialiser
 from uwbfuse.graph.uwb import (
     hmm_smooth,
     jump_log_likelihoods,
@@ -62,6 +61,7 @@ from uwbfuse.graph.uwb import (
     residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
+from uwbfuse.positioning.sparse_start import SparseStartInitialiser
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
