@@ -71,9 +71,12 @@ MAX_SCALE = 0.2  # bound on a range scale error
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
 PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
-# ranges before the online prequential scores start (the robust sigma needs them) and, as
-# many again, before they may switch the model
+# ranges before the online prequential scores start (the robust sigma needs them), and
+# scored ranges before their paired test may decide
 MIN_PREQUENTIAL_RANGES = 100
+# the online range model changes when the other's mean score advantage per range is this
+# many standard errors from zero (a one-sided paired test at about 0.1 %)
+PREQUENTIAL_Z = 3.0
 
 
 @dataclass
@@ -330,8 +333,15 @@ class GraphBuilder:
         # online choice of the range model by prequential score: the log predictive density
         # (nats) of each new range under the mixture and under the robust model, summed
         self.prequential = np.zeros(2)
-        self.prequential_n = 0
-        self.robust_online = False  # new ranges weighted as the robust model, no NLOS states
+        self.prequential_n = 0  # ranges seen (their |residual| feeds the robust sigma)
+        self._pq_n = 0  # ranges scored, and the sums of their score differences d, d^2
+        self._pq_sum = 0.0
+        self._pq_sum2 = 0.0
+        # new ranges weighted as the robust model (no NLOS states) where it is configured;
+        # `auto` keeps the mixture online and hands the verdict to batch: switched online on
+        # early evidence, the graph lost more where the mixture later proved right (factory)
+        # than it gained where it did not (Plaza)
+        self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
         self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
         self._abs_i = 0
 
@@ -772,43 +782,52 @@ class GraphBuilder:
         return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
 
     def prequential_verdict(self) -> str | None:
-        """"mixture" or "robust" once the prequential scores could decide (auto), else
-        None (too few ranges, or a configured model)."""
+        """"robust" or "mixture" where the prequential scores favour one significantly
+        (`prequential_z` beyond PREQUENTIAL_Z), else None (too little evidence, or a
+        configured model)."""
         if self.g.range_model != "auto" or not self.nlos:
             return None
-        if self.prequential_n < 2 * MIN_PREQUENTIAL_RANGES:
-            return None
-        return "robust" if self.robust_online else "mixture"
+        z = self.prequential_z()
+        if z > PREQUENTIAL_Z:
+            return "robust"
+        return "mixture" if z < -PREQUENTIAL_Z else None
+
+    def prequential_z(self) -> float:
+        """Mean per-range score advantage of the robust model over the mixture (nats) in
+        units of its standard error: a paired test on the ranges scored so far."""
+        n = self._pq_n
+        if n < MIN_PREQUENTIAL_RANGES:
+            return 0.0
+        mean = self._pq_sum / n
+        var = max(self._pq_sum2 / n - mean * mean, 1e-12)
+        return mean / math.sqrt(var / n)
 
     def _prequential_choice(
         self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
     ) -> None:
-        """Score the new ranges (before they are used) under both range models and weight
-        the ranges to come by the better one so far: the online counterpart of batch's
-        held-out choice (`graph.range_model`). Only ranges a lag after the start are
-        scored (before, the one-step predictions come from a graph still settling its
-        start), once the robust sigma has MIN_PREQUENTIAL_RANGES residuals behind it."""
+        """Score the new ranges (before they are used) under both range models
+        (prequential): the online counterpart of batch's held-out choice, whose verdict
+        (`prequential_verdict`) batch takes (`graph.range_model = "auto"`). Only ranges a
+        lag after the start are scored (before, the one-step predictions come from a graph
+        still settling its start), once the robust sigma has MIN_PREQUENTIAL_RANGES
+        residuals behind it."""
         if self.g.range_model == "mixture":
             return
         n = len(r_los)
         idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
-        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES or self.g.range_model != "auto":
+        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
             p = np.clip(prior, 1e-3, 1.0 - 1e-3)
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
             lp_rob = np.logaddexp(huber_log_density(r_los, self.robust_sigma(),
                                                     self.cfg.uwb.kernel_threshold), LOG_OUTLIER)
             self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+            d = lp_rob - lp_mix
+            self._pq_n += n
+            self._pq_sum += float(np.sum(d))
+            self._pq_sum2 += float(np.sum(d * d))
         self._abs_r[idx] = np.abs(r_los)
         self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
         self.prequential_n += n
-        robust = (self.g.range_model != "auto" or (
-            self.prequential_n >= 2 * MIN_PREQUENTIAL_RANGES
-            and self.prequential[1] > self.prequential[0]))
-        if robust != self.robust_online:
-            log.info("online range model: %s (prequential score mixture %.1f, robust %.1f "
-                     "nats over %d ranges)", "robust" if robust else "mixture",
-                     self.prequential[0], self.prequential[1], self.prequential_n)
-        self.robust_online = robust
 
     def add_smoothed_residuals(self, r_los: np.ndarray, g: np.ndarray) -> None:
         """Update `smoothed_sigma_los` from LOS residuals (m) at the smoothed estimate and

@@ -663,7 +663,8 @@ class GraphEstimator:
             "model": "robust" if b.robust_online else "mixture",
             "prequential_log_score": {"mixture": float(b.prequential[0]),
                                       "robust": float(b.prequential[1])},
-            "ranges": b.prequential_n}
+            "ranges": b.prequential_n, "z": b.prequential_z(),
+            "verdict": b.prequential_verdict()}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out
