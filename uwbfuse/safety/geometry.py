@@ -1,0 +1,112 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The electronic map (obstacles in the map frame) and the vehicle footprint, as shapely 2.
+
+Map frame: the anchors' frame, metres, z ignored (the floor plan). The footprint is a
+rectangle `length` x `width` (base x, base y) centred at `footprint_center` in the base
+frame; its corners at a pose (x, y, yaw) are the paper's left and right edge points at the
+front and back (section 3.3, with the heading measured from +x as REP-103 does).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+
+from uwbfuse.config import MapConfig, VehicleConfig
+from uwbfuse.errors import CollisionCheckError
+
+F64 = NDArray[np.float64]
+
+BOUNDARY_PAD_M = 1000.0
+"""m: how far past the hall outline the 'outside' obstacle reaches (any hall is smaller)."""
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """Vehicle rectangle in the base frame: length (x) and width (y) in m, centre (m)."""
+
+    length: float
+    width: float
+    center: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not (self.length > 0 and self.width > 0
+                and math.isfinite(self.length) and math.isfinite(self.width)):
+            raise CollisionCheckError(
+                f"[vehicle]: footprint must have a positive size, got length "
+                f"{self.length} m, width {self.width} m")
+
+    @classmethod
+    def from_config(cls, v: VehicleConfig) -> Footprint:
+        return cls(v.length, v.width, (float(v.footprint_center[0]),
+                                       float(v.footprint_center[1])))
+
+    @property
+    def corners(self) -> F64:
+        """(4,2) corners in the base frame, counter-clockwise from back right, m."""
+        cx, cy = self.center
+        hl, hw = 0.5 * self.length, 0.5 * self.width
+        return np.array([[cx - hl, cy - hw], [cx + hl, cy - hw],
+                         [cx + hl, cy + hw], [cx - hl, cy + hw]])
+
+    @property
+    def reach(self) -> float:
+        """Largest distance of a footprint point from the base origin, m."""
+        return float(np.max(np.hypot(self.corners[:, 0], self.corners[:, 1])))
+
+    def corners_at(self, x: F64, y: F64, yaw: F64) -> F64:
+        """Corners (..., 4, 2) in the map frame at poses x, y (m), yaw (rad) of any shape."""
+        c, s = np.cos(yaw)[..., None], np.sin(yaw)[..., None]
+        bx, by = self.corners[:, 0], self.corners[:, 1]
+        out = np.empty((*np.shape(x), 4, 2))
+        out[..., 0] = x[..., None] + c * bx - s * by
+        out[..., 1] = y[..., None] + s * bx + c * by
+        return out
+
+    def polygons(self, x: F64, y: F64, yaw: F64) -> NDArray[np.object_]:
+        """Footprint polygons (same shape as x) at the given poses."""
+        return shapely.polygons(self.corners_at(np.asarray(x), np.asarray(y), np.asarray(yaw)))
+
+
+@dataclass(frozen=True)
+class ObstacleMap:
+    """Obstacles of the map frame: names and shapely geometries, with an STRtree."""
+
+    names: tuple[str, ...]
+    geoms: NDArray[np.object_]
+    tree: shapely.STRtree = field(compare=False, repr=False)
+
+    @classmethod
+    def build(cls, named: list[tuple[str, Any]]) -> ObstacleMap:
+        geoms = np.array([g for _, g in named], dtype=object)
+        shapely.prepare(geoms)
+        return cls(tuple(n for n, _ in named), geoms, shapely.STRtree(geoms))
+
+    @classmethod
+    def from_config(cls, m: MapConfig) -> ObstacleMap:
+        """Obstacles, walls (lines) and the outside of the boundary, as the config gives."""
+        named: list[tuple[str, Any]] = [
+            (f"obstacle{i}", shapely.Polygon(p)) for i, p in enumerate(m.obstacles)]
+        named += [(f"wall{i}", shapely.LineString(w)) for i, w in enumerate(m.walls)]
+        if m.boundary:
+            hall = shapely.Polygon(m.boundary)
+            outside = shapely.difference(hall.buffer(BOUNDARY_PAD_M, join_style="mitre"), hall)
+            named.append(("boundary", outside))
+        return cls.build(named)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def polygons_xy(self) -> list[F64]:
+        """Exterior rings (K,2) of every obstacle, for plots (lines as their vertices)."""
+        out = []
+        for g in self.geoms:
+            ring = g.exterior if isinstance(g, shapely.Polygon) else g
+            out.append(np.asarray(ring.coords)[:, :2])
+        return out
+
