@@ -311,10 +311,10 @@ def check_polygon(name: str, vertices: list[Point2]) -> None:
     if not all(math.isfinite(c) for xy in pts for c in xy):
         raise ValueError(f"{name} has a non-finite vertex")
     poly = Polygon(pts)
+    if not poly.convex_hull.area > 0:
+        raise ValueError(f"{name} does not enclose an area (its vertices are on one line)")
     if not poly.exterior.is_simple:
         raise ValueError(f"{name} is self-intersecting (its edges cross or touch)")
-    if not poly.area > 0:
-        raise ValueError(f"{name} does not enclose an area (its vertices are on one line)")
 
 
 class MapConfig(_Section):

@@ -6,12 +6,13 @@
 
 | AGV  | loop x, y (m)  | m/s  | encounters                                              |
 |------|----------------|------|---------------------------------------------------------|
-| agv0 | 6-34, 2.5-7.0  | 0.50 | passes agv1 side by side in the middle aisle (0.4 m)   |
-| agv1 | 6-34, 8.0-12.5 | 0.55 | meets agv3 head-on on y 12-12.5, 0.5 m apart (contact) |
+| agv0 | 6-34, 2.5-7.0  | 0.50 | passes agv1 side by side in the middle aisle (0.4 m); P2 |
+| agv1 | 6-34, 8.0-12.5 | 0.55 | meets agv3 head-on on y 12-12.5, 0.5 m apart (contact); P3 |
 | agv2 | 19-37, 1-18.5  | 0.50 | crosses all lanes at x = 19; drives through pallet P0  |
-| agv3 | 3-21, 12-17.5  | 0.45 | 0.3 m beside pallet P1; north in the cross aisle x = 21 |
+| agv3 | 3-21, 12-17.5  | 0.45 | 0.3 m beside pallet P1; P4; north in the cross aisle x = 21 |
 
-Pallets are mapped obstacles too low to block UWB (0.8 m squares). The AGVs do not avoid
+Pallets are mapped obstacles too low to block UWB (0.8 m squares): P0, P2, P3 and P4 stand
+in a lane (a contact every lap), P1 beside one. The AGVs do not avoid
 anything (the simulator has no planner): a conflict in the truth is a true conflict. Each
 AGV stands still for 2 s plus a seed-dependent 0-20 s before it starts, so the seeds give
 different encounters; the speeds differ so the encounters drift from lap to lap.
@@ -46,7 +47,13 @@ class FleetScenario:
     vehicles: tuple[tuple[str, Scenario], ...]
 
 
-PALLETS = (Box(27.0, 0.6, 27.8, 1.4), Box(12.0, 18.1, 12.8, 18.9))
+PALLETS = (
+    Box(27.0, 0.6, 27.8, 1.4),  # P0: in agv2's lane y = 1.0
+    Box(12.0, 18.1, 12.8, 18.9),  # P1: 0.3 m beside agv3's lane y = 17.5
+    Box(11.6, 2.1, 12.4, 2.9),  # P2: in agv0's lane y = 2.5
+    Box(28.6, 12.1, 29.4, 12.9),  # P3: in agv1's lane y = 12.5
+    Box(2.6, 14.6, 3.4, 15.4),  # P4: in agv3's lane x = 3
+)
 
 
 def _agv(x0: float, y0: float, x1: float, y1: float, speed: float,
