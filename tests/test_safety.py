@@ -151,3 +151,41 @@ def test_single_pose_and_bad_footprint() -> None:
         motion_from_poses(_poses(np.array([0.0]), np.zeros((1, 2))), 0.5, name="x.tum")
     with pytest.raises(CollisionCheckError, match="positive size"):
         Footprint(0.0, 0.5)
+
+
+def test_walls_and_boundary() -> None:
+    """test that a wall (a polyline) and the hall boundary are obstacles: leaving the hall
+    is a collision, driving along its wall inside the margin a warning"""
+    hall = ObstacleMap.from_config(MapConfig(
+        boundary=[(0.0, 0.0), (10.0, 0.0), (10.0, 5.0), (0.0, 5.0)],
+        walls=[[(5.0, 1.0), (5.0, 4.0)]]))
+    assert hall.names == ("wall0", "boundary")
+    inside = check_map("agv", FOOTPRINT, state(2.0, y=2.5, vx=0.0), hall, VEHICLE)
+    assert inside.kind[0] == Kind.CLEAR
+    along = check_map("agv", FOOTPRINT, state(7.0, y=4.55, vx=0.5), hall, VEHICLE)
+    assert along.kind[0] == Kind.WARNING  # 0.15 m from the wall at y = 5
+    np.testing.assert_allclose(along.distance[0], 0.15, atol=1e-9)
+    out = check_map("agv", FOOTPRINT, state(9.0, y=2.5, vx=1.0), hall, VEHICLE)
+    assert out.kind[0] == Kind.COLLISION
+    wall = check_map("agv", FOOTPRINT, state(4.0, y=2.5, vx=1.0), hall, VEHICLE)
+    assert wall.kind[0] == Kind.COLLISION and wall.ttc[0] <= 0.5
+
+
+@pytest.mark.slow
+def test_dask_path_matches_the_loop() -> None:
+    """test that the Dask path gives the loop's checks (one worker, in-process data)"""
+    pytest.importorskip("distributed")
+    from uwbfuse.safety.fleet import Track, check_fleet
+
+    t = np.arange(0, 20, 0.1)
+    tracks = [Track(n, motion_from_poses(_poses(t, np.column_stack([x0 + s * t, 0 * t]),
+                                                yaw=np.full_like(t, yaw)), 0.5))
+              for n, x0, s, yaw in (("a", 0.0, 0.5, 0.0), ("b", 12.0, -0.5, np.pi),
+                                    ("c", 0.0, 0.1, 0.0))]
+    loop = check_fleet(tracks, SHELF, VEHICLE, use_dask=False)
+    dask = check_fleet(tracks, SHELF, VEHICLE, use_dask=True, workers=1)
+    assert [(c.a, c.b) for c in loop] == [(c.a, c.b) for c in dask]
+    for lc, dc in zip(loop, dask, strict=True):
+        np.testing.assert_array_equal(lc.kind, dc.kind)
+        np.testing.assert_array_equal(lc.distance, dc.distance)
+    assert any(np.any(c.kind == Kind.COLLISION) for c in loop if c.b == "b")
