@@ -41,8 +41,8 @@ def fleet_tracks(n: int, minutes: float, seed: int = 0) -> list[PoseStream]:
     out = []
     for k in range(n):
         sc = WAREHOUSE_FLEET.vehicles[k % len(WAREHOUSE_FLEET.vehicles)][1]
-        mp = MotionParams(sc.speed * (1.0 + 0.05 * (k // 4)), sc.accel, sc.spin_rate)
-        tl = build_timeline(list(sc.route), sc.start, mp, duration, 2.0 + 7.0 * k)
+        mp = MotionParams(sc.speed * (1.0 + 0.03 * ((k // 4) % 4)), sc.accel, sc.spin_rate)
+        tl = build_timeline(list(sc.route), sc.start, mp, duration, 2.0 + (7.0 * k) % 120.0)
         kin = evaluate(tl, t)
         pos = np.column_stack([kin.position + rng.normal(0, NOISE_M, kin.position.shape),
                                np.zeros(len(t))])
