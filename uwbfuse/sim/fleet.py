@@ -4,12 +4,12 @@
 `warehouse-fleet` (the Qiu warehouse, 40 m x 20 m, shelves and corner anchors as in
 `warehouse`): four AGVs on counter-clockwise loops whose lanes cross and share aisles.
 
-| AGV  | loop x, y (m)  | m/s  | encounters                                              |
-|------|----------------|------|---------------------------------------------------------|
-| agv0 | 6-34, 2.5-7.0  | 0.50 | passes agv1 side by side in the middle aisle (0.4 m); P2 |
-| agv1 | 6-34, 8.0-12.5 | 0.55 | meets agv3 head-on on y 12-12.5, 0.5 m apart (contact); P3 |
-| agv2 | 19-37, 1-18.5  | 0.50 | crosses all lanes at x = 19; drives through pallet P0  |
-| agv3 | 3-21, 12-17.5  | 0.45 | 0.3 m beside pallet P1; P4; north in the cross aisle x = 21 |
+| AGV  | loop x, y (m)   | m/s  | encounters                                                |
+|------|-----------------|------|-----------------------------------------------------------|
+| agv0 | 6-34, 2.5-7.25  | 0.50 | meets agv1 head-on in the middle aisle, 0.5 m apart; P2  |
+| agv1 | 6-34, 7.75-12.5 | 0.55 | meets agv3 head-on on y 12-12.5, 0.5 m apart; P3         |
+| agv2 | 19-37, 1-18.5   | 0.50 | crosses all lanes at x = 19; drives through pallet P0    |
+| agv3 | 3-19.9, 12-17.5 | 0.45 | 0.3 m beside P1; P4; passes agv2 in the cross aisle 0.3 m |
 
 Pallets are mapped obstacles too low to block UWB (0.8 m squares): P0, P2, P3 and P4 stand
 in a lane (a contact every lap), P1 beside one. The AGVs do not avoid
@@ -67,10 +67,10 @@ WAREHOUSE_FLEET = FleetScenario(
     description="four AGVs in the Qiu warehouse on crossing loops: head-on and crossing "
     "conflicts, side-by-side passes, a pallet in one route and one beside another",
     vehicles=(
-        ("agv0", _agv(6.0, 2.5, 34.0, 7.0, 0.50, station=3.0)),
-        ("agv1", _agv(6.0, 8.0, 34.0, 12.5, 0.55, station=6.0)),
+        ("agv0", _agv(6.0, 2.5, 34.0, 7.25, 0.50, station=3.0)),
+        ("agv1", _agv(6.0, 7.75, 34.0, 12.5, 0.55, station=6.0)),
         ("agv2", _agv(19.0, 1.0, 37.0, 18.5, 0.50, station=3.0)),
-        ("agv3", _agv(3.0, 12.0, 21.0, 17.5, 0.45, station=3.0)),
+        ("agv3", _agv(3.0, 12.0, 19.9, 17.5, 0.45, station=3.0)),
     ),
 )
 
