@@ -116,11 +116,15 @@ class ObstacleMap:
     def __len__(self) -> int:
         return len(self.names)
 
-    def polygons_xy(self) -> list[F64]:
-        """Exterior rings (K,2) of every obstacle, for plots (lines as their vertices)."""
+    def outlines(self) -> list[tuple[F64, bool]]:
+        """(ring (K,2), filled) per obstacle for plots: polygons filled, walls and the hall
+        boundary (the hole of the 'outside' obstacle) as lines."""
         out = []
         for g in self.geoms:
-            ring = g.exterior if isinstance(g, shapely.Polygon) else g
-            out.append(np.asarray(ring.coords)[:, :2])
+            if isinstance(g, shapely.Polygon) and len(g.interiors):
+                out += [(np.asarray(r.coords)[:, :2], False) for r in g.interiors]
+            elif isinstance(g, shapely.Polygon):
+                out.append((np.asarray(g.exterior.coords)[:, :2], True))
+            else:
+                out.append((np.asarray(g.coords)[:, :2], False))
         return out
-

@@ -27,8 +27,12 @@ def plot_events(path: Path, tracks: Sequence[Track], obstacles: ObstacleMap,
 
     fig, ax = plt.subplots(figsize=(9, 6))
     try:
-        for ring in obstacles.polygons_xy():
-            ax.fill(ring[:, 0], ring[:, 1], color="0.75", edgecolor="0.4", lw=0.8, zorder=1)
+        for ring, filled in obstacles.outlines():
+            if filled:
+                ax.fill(ring[:, 0], ring[:, 1], color="0.75", edgecolor="0.4", lw=0.8,
+                        zorder=1)
+            else:
+                ax.plot(ring[:, 0], ring[:, 1], color="0.3", lw=1.5, zorder=1)
         by_name = {t.name: t.state for t in tracks}
         for t in tracks:
             ax.plot(t.state.x, t.state.y, lw=0.8, label=t.name, zorder=2)
