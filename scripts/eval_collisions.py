@@ -5,9 +5,9 @@ For every seed: simulate `warehouse-fleet` (four AGVs, one log each on one clock
 each AGV's trajectory with every method, run the collision check on the estimates (and on
 the ground truth itself, decimated to 10 Hz, as the predictor's own reference) with the
 nominal margin and with the margin widened by k sigma (the estimator's covariance where it
-gives one, else `--assumed-sigma`), and score it against the true footprints
-(`uwbfuse.safety.evaluate`): true conflicts, detection rate, false alarms per epoch near a
-target, lead time. Prints a Markdown table.
+gives one, else `--assumed-sigma`; `cov share`: the epochs with a known xy std), and score
+it against the true footprints (`uwbfuse.safety.evaluate`): true conflicts, detection rate,
+false alarms per epoch near a target, lead time. Prints a Markdown table.
 
     python scripts/eval_collisions.py --seeds 0,1,2 --duration 300 --jobs 2
 """
@@ -28,7 +28,7 @@ from uwbfuse.pipeline import estimate
 from uwbfuse.safety.evaluate import FleetScore, score_fleet, truth_clearances
 from uwbfuse.safety.fleet import Track, check_fleet
 from uwbfuse.safety.geometry import ObstacleMap
-from uwbfuse.safety.motion import motion_from_poses
+from uwbfuse.safety.motion import motion_from_poses, position_sigma
 from uwbfuse.sim.fleet import simulate_fleet
 from uwbfuse.streams import PoseStream
 
@@ -96,8 +96,8 @@ def main(argv: list[str] | None = None) -> int:
             tracks = []
             for k, (name, res) in enumerate(fleet):
                 traj, _ = trajs[(seed, k, m)]
-                info[m].append((_rmse(traj, res.log.ground_truth),
-                                traj.covariance is not None))
+                known = np.isfinite(position_sigma(traj.covariance, len(traj)))
+                info[m].append((_rmse(traj, res.log.ground_truth), float(known.mean())))
                 tracks.append(Track(name, motion_from_poses(
                     traj, base.velocity_window, args.assumed_sigma, name=f"{m}:{name}")))
             for vname, vcfg in variants.items():
@@ -109,14 +109,14 @@ def main(argv: list[str] | None = None) -> int:
           f"vehicle {base.length} x {base.width} m, control_delay {base.control_delay} s, "
           f"safety_margin {base.safety_margin} m; widened: covariance where given, else "
           f"{args.assumed_sigma} m\n")
-    cols = ("method", "margin", "xy RMSE m", "cov", "true conflicts", "detected",
+    cols = ("method", "margin", "xy RMSE m", "cov share", "true conflicts", "detected",
             "detection rate", "false alarms", "near epochs", "false-alarm rate",
             "median lead s", "min lead s")
     print("| " + " | ".join(cols) + " |")
     print("|" + "|".join("---" for _ in cols) + "|")
     for m in methods:
         rmse = np.mean([r for r, _ in info[m]])
-        cov = "yes" if any(c for _, c in info[m]) else "no"
+        cov = f"{np.mean([c for _, c in info[m]]):.2f}"
         for vname in variants:
             s = scores[(m, vname)]
             lead_min = f"{s.lead_s.min():.2f}" if len(s.lead_s) else ""
