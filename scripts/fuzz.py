@@ -103,7 +103,7 @@ class Outcome:
 class Bases:
     """Valid logs (simulated, short) and their decoded streams, made once per work dir."""
 
-    def __init__(self, work: Path) -> None:
+    def __init__(self, work: Path, scale: float = 1.0) -> None:
         from uwbfuse.config import Config
         from uwbfuse.io.reader import read_log
         from uwbfuse.io.writer import write_contract_log
@@ -112,8 +112,8 @@ class Bases:
         self.work = work
         base = work / "base"
         base.mkdir(parents=True, exist_ok=True)
-        specs = [("warehouse", 5.0, 1, "zstd"), ("room", 3.0, 2, "none"),
-                 ("factory", 4.0, 3, "lz4"), ("warehouse", 3.0, 4, "none")]
+        specs = [("warehouse", 5.0 * scale, 1, "zstd"), ("room", 3.0 * scale, 2, "none"),
+                 ("factory", 4.0 * scale, 3, "lz4"), ("warehouse", 3.0 * scale, 4, "none")]
         self.logs: list[Path] = []
         for scen, dur, seed, comp in specs:
             p = base / f"{scen}_{dur:g}s_{seed}_{comp}.mcap"
@@ -347,20 +347,25 @@ def _recursive_schema(depth: int | None) -> str:
     return "\n".join(parts) + "\n"
 
 
-def gen_hostile(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Case:
+HOSTILE_KINDS = (
+    "future-range", "imu-1.8e9", "negative-stamp", "zero-stamp-logtime0", "twist-1e308",
+    "twist-nan", "imu-1e308", "range-1e30", "frame-id-1MiB", "recursive-schema",
+    "depth-bomb", "schema-flip", "json-null-stamp", "json-nan-stamp", "json-str-v",
+    "json-list-stamp", "anchors-deep", "anchors-bool", "anchors-1e308", "anchors-bigint",
+    "anchors-notjson", "single-wheel", "single-imu", "all-zero-stamps", "far-gt",
+    "many-ids", "ranges-array", "jointstate-bad", "stamp-int-huge", "dup-channels",
+)
+
+
+def gen_hostile(i: int, rng: random.Random, bases: Bases, case_dir: Path,
+                kind: str | None = None) -> Case:
     log = case_dir / "log.mcap"
     n_w = len(bases.sensor.wheel.t_ns)  # type: ignore[union-attr]
     n_r = len(bases.sensor.ranges.t_ns)  # type: ignore[union-attr]
     t0 = int(bases.sensor.imu.t_ns[0])  # type: ignore[union-attr]
-    kinds = [
-        "future-range", "imu-1.8e9", "negative-stamp", "zero-stamp-logtime0", "twist-1e308",
-        "twist-nan", "imu-1e308", "range-1e30", "frame-id-1MiB", "recursive-schema",
-        "depth-bomb", "schema-flip", "json-null-stamp", "json-nan-stamp", "json-str-v",
-        "json-list-stamp", "anchors-deep", "anchors-bool", "anchors-1e308", "anchors-bigint",
-        "anchors-notjson", "single-wheel", "single-imu", "all-zero-stamps", "far-gt",
-        "many-ids", "ranges-array", "jointstate-bad", "stamp-int-huge", "dup-channels",
-    ]
-    kind = kinds[i % len(kinds)] if rng.random() < 0.7 else rng.choice(kinds)
+    if kind is None:
+        kind = (HOSTILE_KINDS[i % len(HOSTILE_KINDS)] if rng.random() < 0.7
+                else rng.choice(HOSTILE_KINDS))
     must_reject = False
     method = None
     k = rng.randrange(10, 100)
@@ -532,18 +537,16 @@ def gen_hostile(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Cas
                      method=method)
 
 
-def _zstd_bomb(path: Path, size: int) -> bytes:
-    """A zstd frame of `size` zero bytes (cached): about size / 32768 bytes compressed."""
-    if not path.exists():
-        import zstandard
-
-        cobj = zstandard.ZstdCompressor(level=1).compressobj(size=size)
-        zero = bytes(1 << 24)
-        with open(path, "wb") as f:
-            for _ in range(size // len(zero)):
-                f.write(cobj.compress(zero))
-            f.write(cobj.flush())
-    return path.read_bytes()
+def zstd_zeros_frame(size: int) -> bytes:
+    """A valid zstd frame of `size` zero bytes, built from RLE blocks (4 bytes per 128 KiB,
+    so 4 GiB is 128 KiB) with the content size in its header: a decompression bomb."""
+    block = 1 << 17
+    n_full, rest = divmod(size, block)
+    sizes = [block] * n_full + ([rest] if rest else [])
+    head = struct.pack("<I", 0xFD2FB528) + bytes([0xC0, 0x38]) + struct.pack("<Q", size)
+    blocks = [struct.pack("<I", (n << 3) | (1 << 1) | (k == len(sizes) - 1))[:3] + b"\x00"
+              for k, n in enumerate(sizes)]
+    return head + b"".join(blocks)
 
 
 def _chunk_record(compressed: bytes, declared: int, compression: str,
@@ -555,7 +558,13 @@ def _chunk_record(compressed: bytes, declared: int, compression: str,
     return bytes([0x06]) + struct.pack("<Q", len(body)) + body
 
 
-def gen_resource(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Case:
+RESOURCE_KINDS = ("zstd-bomb-4g", "zstd-bomb-trunc", "zstd-declared-small", "lz4-bomb",
+                  "huge-record-len", "huge-chunk-size", "many-channels", "huge-string-len",
+                  "zero-records")
+
+
+def gen_resource(i: int, rng: random.Random, bases: Bases, case_dir: Path,
+                 kind: str | None = None) -> Case:
     log = case_dir / "log.mcap"
     magic = b"\x89MCAP0\r\n"
     header = bytes([0x01]) + struct.pack("<Q", 8) + struct.pack("<I", 4) + b"ros2" \
@@ -565,12 +574,9 @@ def gen_resource(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Ca
     body = valid[len(magic):]
     end = body.find(bytes([0x0F]) + struct.pack("<Q", 4))
     body = body[:end] if end > 0 else body
-    kinds = ["zstd-bomb-4g", "zstd-bomb-trunc", "zstd-declared-small", "lz4-bomb",
-             "huge-record-len", "huge-chunk-size", "many-channels", "huge-string-len",
-             "zero-records"]
-    kind = kinds[i % len(kinds)]
+    kind = kind or RESOURCE_KINDS[i % len(RESOURCE_KINDS)]
     if kind in ("zstd-bomb-4g", "zstd-bomb-trunc", "zstd-declared-small"):
-        bomb = _zstd_bomb(bases.work / "base" / "bomb4g.zst", 4 * GIB)
+        bomb = zstd_zeros_frame(4 * GIB)
         declared = {"zstd-declared-small": 1000}.get(kind, 4 * GIB)
         rec = _chunk_record(bomb, declared, "zstd")
         data = magic + body + rec
@@ -601,13 +607,8 @@ def gen_resource(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Ca
     elif kind == "huge-string-len":
         rec = struct.pack("<H", 7) + struct.pack("<I", 0xFFFFFFF0) + b"x" * 64
         data = magic + header + bytes([0x03]) + struct.pack("<Q", len(rec)) + rec + body
-    else:  # a chunk of 200 MB of zero-length opcode-0 records
-        import zstandard
-
-        path = bases.work / "base" / "zeros200m.zst"
-        if not path.exists():
-            path.write_bytes(zstandard.ZstdCompressor(level=1).compress(bytes(200 << 20)))
-        data = magic + body + _chunk_record(path.read_bytes(), 200 << 20, "zstd")
+    else:  # a chunk of 100 MiB of zero-length opcode-0 records
+        data = magic + body + _chunk_record(zstd_zeros_frame(100 << 20), 100 << 20, "zstd")
     log.write_bytes(data)
     return _run_case("resource", kind, log, case_dir, rng, method=rng.choice(FAST_METHODS))
 

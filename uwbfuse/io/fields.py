@@ -96,7 +96,9 @@ def time_to_ns(stamp: Any) -> int:
     if isinstance(stamp, int):
         return _in_range(stamp * NS_PER_S)
     if isinstance(stamp, float):
-        return _in_range(round(stamp * NS_PER_S)) if math.isfinite(stamp) else INVALID_STAMP
+        if not (math.isfinite(stamp) and abs(stamp) <= _MAX_NS / NS_PER_S):
+            return INVALID_STAMP
+        return _in_range(round(stamp * NS_PER_S))
     for sec_key, ns_key in (("sec", "nanosec"), ("sec", "nsec"), ("secs", "nsecs")):
         if has_path(stamp, sec_key) and has_path(stamp, ns_key):
             sec, ns = get_path(stamp, sec_key), get_path(stamp, ns_key)

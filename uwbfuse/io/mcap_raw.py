@@ -281,9 +281,9 @@ class _Scanner:
             return
         ops = arr[s]
         is_msg = ops == OP_MESSAGE
-        for pos, op in zip(s[~is_msg].tolist(), ops[~is_msg].tolist(), strict=True):
-            if op in (OP_SCHEMA, OP_CHANNEL):
-                self._record(data, pos, op)
+        defs = (ops == OP_SCHEMA) | (ops == OP_CHANNEL)  # only these (not a list of all)
+        for pos, op in zip(s[defs].tolist(), ops[defs].tolist(), strict=True):
+            self._record(data, pos, op)
         self._messages(data, arr, s[is_msg])
 
     def _chunk(
@@ -337,7 +337,8 @@ class _Scanner:
                     self._record(buf, pos, op)
             s, ops = s[: ends[0]], ops[: ends[0]]
         is_msg = ops == OP_MESSAGE
-        other = list(zip(s[~is_msg].tolist(), ops[~is_msg].tolist(), strict=True))
+        used = np.isin(ops, (OP_SCHEMA, OP_CHANNEL, OP_CHUNK, OP_MESSAGE_INDEX, OP_METADATA))
+        other = list(zip(s[used].tolist(), ops[used].tolist(), strict=True))
         i = 0
         while i < len(other):
             pos, op = other[i]

@@ -512,7 +512,7 @@ def _sort_dedup(
 
 def _row_all(ok: np.ndarray) -> np.ndarray:
     """Per row, whether every value of a (n, ...) boolean array is true (n may be 0)."""
-    return ok if ok.ndim == 1 else ok.reshape(ok.shape[0], -1).all(axis=1)
+    return ok if ok.ndim == 1 else ok.all(axis=tuple(range(1, ok.ndim)))
 
 
 def _good_rows(

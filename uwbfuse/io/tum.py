@@ -25,7 +25,9 @@ log = logging.getLogger(__name__)
 _DECIMAL = re.compile(r"^(?P<sign>[+-]?)(?P<whole>[0-9]*)(?:\.(?P<frac>[0-9]*))?$")
 HEADER = "# t x y z qx qy qz qw  (t: s; x y z: m, base frame in map frame)\n"
 _MAX_NS = (1 << 63) - 1  # stamps are int64 nanoseconds (year 2262)
-MIN_QUAT_NORM = 1e-6  # a written quaternion is unit; one this short is not a rotation
+# a written quaternion is unit: one with a norm outside [MIN, MAX] is no rotation (and at
+# 1e-200 or 1e200 the norm itself underflows or overflows)
+MIN_QUAT_NORM, MAX_QUAT_NORM = 1e-6, 1e6
 
 
 def _format_stamp(t_ns: int) -> str:
@@ -119,9 +121,10 @@ def read_tum(path: str | Path) -> PoseStream:
         if max(abs(x) for x in row[:3]) > MAX_COORD_M:
             raise TrajectoryFileError(f"{p}:{lineno}: position beyond {MAX_COORD_M:g} m in "
                                       f"{line[:80]!r}")
-        if not np.linalg.norm(row[3:7]) >= MIN_QUAT_NORM:
-            raise TrajectoryFileError(f"{p}:{lineno}: zero quaternion (norm below "
-                                      f"{MIN_QUAT_NORM:g}: not a rotation)")
+        if not MIN_QUAT_NORM <= np.linalg.norm(row[3:7]) <= MAX_QUAT_NORM:
+            what = "zero" if max(abs(x) for x in row[3:7]) < 1 else "huge"
+            raise TrajectoryFileError(f"{p}:{lineno}: {what} quaternion (norm outside "
+                                      f"[{MIN_QUAT_NORM:g}, {MAX_QUAT_NORM:g}]: not a rotation)")
         values.append(row)
     if not stamps:
         raise TrajectoryFileError(f"{p}: no poses in trajectory file")
