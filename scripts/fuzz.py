@@ -741,8 +741,10 @@ GENERATORS: dict[str, Callable[[int, random.Random, Bases, Path], Case]] = {
 
 
 def make_cases(n: int, seed: int, families: list[str], bases: Bases, work: Path,
-               weights: dict[str, float] | None = None) -> list[Case]:
-    """`n` cases (families drawn with `weights`), each from its own seeded generator."""
+               weights: dict[str, float] | None = None,
+               part: tuple[int, int] = (0, 1)) -> list[Case]:
+    """`n` cases (families drawn with `weights`), each from its own seeded generator;
+    `part` (k, m) makes only the cases whose index is k modulo m (the same cases)."""
     w = weights or {"bytes": 0.35, "hostile": 0.3, "resource": 0.06, "config": 0.14,
                     "eval": 0.15}
     fam_rng = random.Random(seed)
@@ -752,6 +754,8 @@ def make_cases(n: int, seed: int, families: list[str], bases: Bases, work: Path,
         fam = fam_rng.choices(families, [w.get(f, 0.1) for f in families])[0]
         k = per_family[fam]
         per_family[fam] += 1
+        if idx % part[1] != part[0]:
+            continue
         case_dir = work / "cases" / f"{idx:05d}_{fam}"
         case_dir.mkdir(parents=True, exist_ok=True)
         rng = random.Random(f"{seed}:{fam}:{k}")

@@ -338,6 +338,17 @@ def test_single_wheel_message_is_rejected(tmp_path: Path,
     assert not out.exists()
 
 
+def test_log_shorter_than_one_output_period_is_rejected(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """test that two wheel messages 20 ms apart (less than the 0.1 s output period) are a
+    one-line error, not a one-pose trajectory"""
+    p = _wheel_log(tmp_path / "w.mcap", np.array([0.5, 0.5]))
+    out = tmp_path / "o.tum"
+    code, err = _run(["run", str(p), "--method", "odom", "-o", str(out)], capsys)
+    assert code == 2 and len(err) == 1 and "less than one output period" in err[0], err
+    assert not out.exists()
+
+
 def test_one_mib_anchor_id_is_capped(tmp_path: Path) -> None:
     """test that Range messages with 1 MiB frame ids are dropped as too long without
     building a fixed-width array of that width per range"""

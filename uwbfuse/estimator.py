@@ -206,10 +206,15 @@ MAX_EPOCHS = 10_000_000
 def output_epochs(log: SensorLog, rate_hz: float) -> np.ndarray:
     """Epoch stamps (int64 ns) on a regular grid over the log's sensor time span.
 
-    Raises EstimatorError when the span at `rate_hz` needs more than MAX_EPOCHS epochs.
+    Raises EstimatorError when the span is shorter than one period (nothing to estimate
+    over: a log of one or two messages) or needs more than MAX_EPOCHS epochs.
     """
     t0, t1 = log.time_span_ns()
     period = max(round(NS_PER_S / rate_hz), 1)
+    if t1 - t0 < period:
+        raise EstimatorError(
+            f"{log.source}: the sensor data span {(t1 - t0) / NS_PER_S:.3f} s, less than one "
+            f"output period ({period / NS_PER_S:g} s at {rate_hz:g} Hz): nothing to estimate")
     n = (t1 - t0) // period + 1
     if n > MAX_EPOCHS:
         raise EstimatorError(
