@@ -344,6 +344,9 @@ def _recursive_schema(depth: int | None) -> str:
         parts.append("=" * 80 + f"\nMSG: uwb_msgs/N{d}\nuwb_msgs/N{d + 1} a\n"
                      f"uwb_msgs/N{d + 1} b")
     parts.append("=" * 80 + f"\nMSG: uwb_msgs/N{depth}\nfloat64 range")
+    parts.append("=" * 80 + "\nMSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\n"
+                 "string frame_id\n" + "=" * 80 + "\nMSG: builtin_interfaces/Time\n"
+                 "int32 sec\nuint32 nanosec")
     return "\n".join(parts) + "\n"
 
 
@@ -354,6 +357,7 @@ HOSTILE_KINDS = (
     "json-list-stamp", "anchors-deep", "anchors-bool", "anchors-1e308", "anchors-bigint",
     "anchors-notjson", "single-wheel", "single-imu", "all-zero-stamps", "far-gt",
     "many-ids", "ranges-array", "jointstate-bad", "stamp-int-huge", "dup-channels",
+    "bomb-named-range",
 )
 
 
@@ -410,6 +414,18 @@ def gen_hostile(i: int, rng: random.Random, bases: Bases, case_dir: Path,
         ch = ("/uwb/range", "uwb_msgs/msg/Loop", "ros2msg", text, "cdr")
         extra = [(ch, [(t0 + j * 10**8, b"\x00\x01\x00\x00" + bytes(64)) for j in range(20)])]
         drop = ("/uwb/range",)
+    elif kind == "bomb-named-range":  # a 2^n schema under the name of a fast-path type
+        from uwbfuse.io import msgdefs
+
+        ch = ("/uwb/range", msgdefs.RANGE, "ros2msg",
+              _recursive_schema(rng.choice([24, 31])).replace("uwb_msgs/N0 n",
+                                                             "uwb_msgs/N0 n\nfloat32 range"),
+              "cdr")
+        streams = _cdr_streams(bases)
+        _, t, datas = streams["/uwb/range"]
+        extra = [(ch, list(zip(t.tolist(), datas, strict=True)))]
+        drop = ("/uwb/range",)
+        method = "wls"
     elif kind == "schema-flip":
         from uwbfuse.io import msgdefs
 

@@ -178,6 +178,21 @@ def test_schema_bombs_are_rejected_quickly(depth: int | None, match: str) -> Non
     assert time.perf_counter() - t < 1.0
 
 
+def test_bomb_schema_under_a_fast_type_name_reads_quickly(tmp_path: Path) -> None:
+    """test that a Range channel whose schema is a 30-level two-field bomb (the old parser:
+    2^30 calls) is refused in well under a second, with a one-line error"""
+    t = T0 + np.arange(20, dtype=np.int64) * 10**8
+    datas = cdr_fast.encode_range(t, ["A0"], np.zeros(20, int), np.full(20, 3.0))
+    p = _write(tmp_path / "b.mcap", [("/uwb/range", msgdefs.RANGE, "ros2msg",
+                                      _loop_schema(30), "cdr")],
+               [(0, int(x), d) for x, d in zip(t.tolist(), datas, strict=True)])
+    start = time.perf_counter()
+    with pytest.raises(LogReadError, match="cannot parse schema") as e:
+        read_log(p, Config())
+    assert time.perf_counter() - start < 2.0
+    assert "\n" not in str(e.value)
+
+
 def test_real_schemas_keep_their_layout() -> None:
     """test that the bounded parser gives the same layouts for the ROS 2 types"""
     for name in (msgdefs.IMU, msgdefs.ODOMETRY, msgdefs.RANGE, msgdefs.JOINT_STATE):
