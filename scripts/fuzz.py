@@ -790,7 +790,8 @@ def _limit(mem_bytes: int) -> Callable[[], None]:
 
 
 def _run_exec(argv: list[str], timeout: float, mem_bytes: int) -> tuple[int | None, str, float]:
-    """Fresh interpreter: (exit status or None on timeout, stderr, peak RSS MB)."""
+    """Fresh interpreter: (exit status or None on timeout, stderr, peak RSS MB: the largest
+    of every child so far, as RUSAGE_CHILDREN keeps it)."""
     proc = subprocess.Popen([sys.executable, "-m", "uwbfuse", *argv], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, preexec_fn=_limit(mem_bytes))
     try:
