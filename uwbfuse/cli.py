@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import logging.handlers
 import os
 import signal
 import sys
@@ -391,14 +392,26 @@ def _handle_sigterm() -> Any:
         return None
 
 
+def _held_warnings(verbose: bool) -> logging.handlers.MemoryHandler | None:
+    """Log to stderr; without --verbose the warnings are held until the command ends (a
+    failed command prints only its error line)."""
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if verbose:
+        logging.basicConfig(level=logging.INFO, format=fmt)
+        return None
+    out = logging.StreamHandler()
+    out.setFormatter(logging.Formatter(fmt))
+    held = logging.handlers.MemoryHandler(1 << 16, flushLevel=logging.CRITICAL + 1, target=out)
+    logging.basicConfig(level=logging.WARNING, handlers=[held])
+    logging.captureWarnings(True)  # numpy's RuntimeWarnings are held with the rest
+    return held
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `uwbfuse` console script."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.INFO if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    held = _held_warnings(args.verbose)
     if getattr(args, "method", None) is not None:
         from uwbfuse.estimator import Method
 
@@ -413,6 +426,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except UwbfuseError as e:
+        if held is not None:
+            held.buffer.clear()  # bad input: the one error line, not the warnings before it
         print(f"uwbfuse {args.command}: error: {e}", file=sys.stderr)
         return 2
     except Terminated:
@@ -430,6 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        if held is not None:
+            held.flush()
 
 
 if __name__ == "__main__":

@@ -10,17 +10,80 @@ from __future__ import annotations
 
 import math
 import tomllib
-from enum import StrEnum
+import types
+from enum import Enum, StrEnum
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Union, get_args, get_origin
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from uwbfuse.errors import ConfigError
 
+# |x| of any number in the config, SI units: smaller (but not 0) or larger is a typo or a
+# value whose square or inverse overflows (a sigma of 1e-320 is an infinite weight)
+MIN_MAGNITUDE = 1e-12
+MAX_MAGNITUDE = 1e9
+
+
+def _check_plain(v: Any, ann: Any) -> None:
+    """Raise ValueError where pydantic's lax mode would coerce (true -> 1.0, "0.5" -> 0.5,
+    1 -> true) or where a number is beyond MIN_MAGNITUDE/MAX_MAGNITUDE."""
+    origin, args = get_origin(ann), get_args(ann)
+    if origin in (Union, types.UnionType):
+        errors = []
+        for a in args:
+            try:
+                _check_plain(v, a)
+                return
+            except ValueError as e:
+                errors.append(str(e))
+        raise ValueError(" or ".join(errors))
+    if origin is Literal:
+        if v not in args:
+            raise ValueError(f"expected one of {', '.join(map(repr, args))}")
+        return
+    if origin in (tuple, list) and isinstance(v, (list, tuple)):
+        items = args if origin is tuple and Ellipsis not in args else args[:1] * len(v)
+        for x, a in zip(v, items, strict=False):
+            _check_plain(x, a)
+        return
+    if origin is dict and isinstance(v, dict) and len(args) == 2:
+        for x in v.values():
+            _check_plain(x, args[1])
+        return
+    if ann in (float, int):
+        if isinstance(v, (bool, str)):
+            got = "a boolean" if isinstance(v, bool) else "text"
+            raise ValueError(f"expected a number, got {got}")
+        if isinstance(v, (int, float)) and math.isfinite(v) and v != 0 and not (
+                MIN_MAGNITUDE <= abs(v) <= MAX_MAGNITUDE):
+            raise ValueError(f"{v!r} is beyond the magnitudes a setting may have "
+                             f"({MIN_MAGNITUDE:g} to {MAX_MAGNITUDE:g})")
+    elif ann is bool and not isinstance(v, bool):
+        raise ValueError("expected a boolean (true or false)")
+    elif ann is str and not isinstance(v, str):
+        raise ValueError("expected text")
+    elif isinstance(ann, type) and issubclass(ann, Enum) and not isinstance(v, (str, Enum)):
+        raise ValueError("expected text")
+
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # allow_inf_nan: inf and nan (TOML has both) are never a valid setting
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_coercion(cls, v: Any, info: ValidationInfo) -> Any:
+        if info.field_name is not None:
+            _check_plain(v, cls.model_fields[info.field_name].annotation)
+        return v
 
 
 class RobustKernel(StrEnum):
@@ -499,6 +562,13 @@ def load_config(path: str | Path | None) -> Config:
         raise ConfigError(f"{p}: config path is a directory, expected a TOML file") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"{p}: not valid TOML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{p}: not a UTF-8 text file (byte {e.start}): not a TOML "
+                          "config") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not valid TOML: nested too deeply") from None
+    except OSError as e:  # a path through a file, no permission, ...
+        raise ConfigError(f"{p}: cannot read config: {e.strerror or e}") from None
     return config_from_dict(data, str(p))
 
 

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwbfuse.methods import Method  # noqa: F401  (re-exported: the public name's old home)
+from uwbfuse.errors import EstimatorError
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, SensorLog
 
 
@@ -216,11 +217,29 @@ class StreamingResult:
     range_classes: RangeClasses | None = None
 
 
+# Epochs the output grid may have: 10^7 is 11.6 days at 10 Hz (each epoch costs a step and
+# a pose, about 1 kB); more means stamps on different clocks, not a long log
+MAX_EPOCHS = 10_000_000
+
+
 def output_epochs(log: SensorLog, rate_hz: float) -> np.ndarray:
-    """Epoch stamps (int64 ns) on a regular grid over the log's sensor time span."""
+    """Epoch stamps (int64 ns) on a regular grid over the log's sensor time span.
+
+    Raises EstimatorError when the span is shorter than one period (nothing to estimate
+    over: a log of one or two messages) or needs more than MAX_EPOCHS epochs.
+    """
     t0, t1 = log.time_span_ns()
-    period = round(NS_PER_S / rate_hz)
+    period = max(round(NS_PER_S / rate_hz), 1)
+    if t1 - t0 < period:
+        raise EstimatorError(
+            f"{log.source}: the sensor data span {(t1 - t0) / NS_PER_S:.3f} s, less than one "
+            f"output period ({period / NS_PER_S:g} s at {rate_hz:g} Hz): nothing to estimate")
     n = (t1 - t0) // period + 1
+    if n > MAX_EPOCHS:
+        raise EstimatorError(
+            f"{log.source}: the sensor stamps span {(t1 - t0) / NS_PER_S:.0f} s, "
+            f"{n} output epochs at {rate_hz:g} Hz (at most {MAX_EPOCHS}): are the stamps "
+            "on one clock?")
     epochs = t0 + period * np.arange(n, dtype=np.int64)
     if epochs[-1] < t1:
         epochs = np.append(epochs, np.int64(t1))

@@ -232,7 +232,11 @@ def evaluate(
             + " m"
         )
 
-    e3, e2 = ate_errors(est_pos, gt_pos)
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow: the error just below
+        e3, e2 = ate_errors(est_pos, gt_pos)
+    if not (np.isfinite(e3).all() and np.isfinite(est_pos).all()):
+        raise EvaluationError(f"{est_name}: errors against {gt_name} are not finite "
+                              f"({kind.value} alignment): the poses are too far apart")
 
     rpe: list[RpeResult] = []
     oriented = gt.has_orientation and est.has_orientation

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.io import msgdefs, ros2msg
+from uwbfuse.io.fields import MAX_ANCHOR_ID_CHARS
 
 U8 = NDArray[np.uint8]
 _CDR_LE = b"\x00\x01\x00\x00"
@@ -238,7 +239,10 @@ def fast_type(schema_name: str, schema_encoding: str, schema_text: str) -> str |
             break
     else:
         return None
-    layout = _layout_cached(schema_name, schema_text)
+    try:
+        layout = _layout_cached(schema_name, schema_text)
+    except ros2msg.SchemaError:
+        return None  # the generic decoder says why
     expected = _expected_layout(type_name)
     if layout is None or layout[: len(expected)] != expected:
         return None
@@ -341,7 +345,9 @@ def decode_at(
         cols["range"][sel] = _take(arr, b + 12, 4).view("<f4")[:, 0].astype(np.float64)
         for v1 in np.unique(l1).tolist():
             k = l1 == v1
-            cols["frame_id"][sel[k]] = _strings(_take(arr, o[k] + 16, max(v1 - 1, 0)))
+            # an over-long id is cut one past the limit (the reader drops it as too long)
+            width = min(max(v1 - 1, 0), 4 * MAX_ANCHOR_ID_CHARS + 1)
+            cols["frame_id"][sel[k]] = _strings(_take(arr, o[k] + 16, width))
     else:
         pose = _f8(arr, b, 7)
         cols["position"][sel] = pose[:, 0:3]

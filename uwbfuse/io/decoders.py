@@ -12,12 +12,15 @@ only what that path cannot read.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 from collections.abc import Callable
 from typing import Any
 
 from mcap.records import Schema
 
+from uwbfuse.io import ros2msg
 from uwbfuse.io.mcap_raw import RawChannel
 
 DecodeFn = Callable[[bytes], Any]
@@ -37,10 +40,17 @@ def _cdr(channel: RawChannel) -> DecodeFn:
         raise DecoderUnavailable(f"schema encoding {schema.encoding!r} is not supported "
                                  "for cdr (only ros2msg)")
     record = Schema(id=schema.id, name=schema.name, encoding=schema.encoding, data=schema.data)
+    text = schema.data.decode("utf-8", errors="replace")
     try:
-        fn = DecoderFactory().decoder_for("cdr", record)
+        ros2msg.layout_of(schema.name, text)  # recursion, depth and size bombs first
+        # the vendored rosidl parser prints some of its complaints: keep them off the
+        # terminal (the error below says what was wrong)
+        with contextlib.redirect_stdout(io.StringIO()), \
+                contextlib.redirect_stderr(io.StringIO()):
+            fn = DecoderFactory().decoder_for("cdr", record)
     except Exception as e:  # the vendored rosidl parser raises many types
-        raise DecoderUnavailable(f"cannot parse schema {schema.name!r}: {e}") from None
+        why = " ".join(str(e).split())[:200]
+        raise DecoderUnavailable(f"cannot parse schema {schema.name!r}: {why}") from None
     if fn is None:
         raise DecoderUnavailable(f"no cdr decoder for schema {schema.name!r}")
     return fn

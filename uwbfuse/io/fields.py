@@ -13,6 +13,16 @@ from typing import Any
 import numpy as np
 
 NS_PER_S = 1_000_000_000
+# what `time_to_ns` gives for a stamp that is no time at all (text, NaN, out of int64
+# range): negative, so that the reader drops the message as one with a bad stamp
+INVALID_STAMP = -1
+_MAX_NS = (1 << 63) - 1
+# positions and anchors, metres: beyond any Earth-fixed map (UTM northings are < 1e7 m);
+# a larger coordinate is corrupt, and its square is on the way to overflow
+MAX_COORD_M = 1e8
+# longest anchor id kept, characters: ids are names or numbers ("A0", "7475", a MAC address);
+# a longer one is corrupt and would make every id comparison and table that long
+MAX_ANCHOR_ID_CHARS = 256
 
 
 class MissingField(KeyError):
@@ -60,18 +70,42 @@ def stamp_ns(msg: Any) -> int:
     return time_to_ns(stamp)
 
 
+def _in_range(ns: int) -> int:
+    return ns if -_MAX_NS <= ns <= _MAX_NS else INVALID_STAMP
+
+
+def _whole(v: Any) -> bool:
+    """An integer, or a float with an integer value (JSON writers differ)."""
+    if isinstance(v, bool):
+        return False
+    if isinstance(v, (int, np.integer)):
+        return True
+    return isinstance(v, float) and math.isfinite(v) and v.is_integer()
+
+
 def time_to_ns(stamp: Any) -> int:
-    """A time value ({sec, nanosec} object/dict or seconds as a number) in integer ns."""
-    if isinstance(stamp, bool) or stamp is None:
+    """A time value ({sec, nanosec} object/dict or seconds as a number) in integer ns.
+
+    0 (no stamp: the log time is used) for a missing/null stamp; INVALID_STAMP for one that
+    is present but no time: text, NaN, a non-integer sec, beyond the int64 nanoseconds.
+    """
+    if stamp is None:
         return 0
+    if isinstance(stamp, bool):
+        return INVALID_STAMP
     if isinstance(stamp, int):
-        return stamp * NS_PER_S
+        return _in_range(stamp * NS_PER_S)
     if isinstance(stamp, float):
-        return round(stamp * NS_PER_S) if math.isfinite(stamp) else 0
+        if not (math.isfinite(stamp) and abs(stamp) <= _MAX_NS / NS_PER_S):
+            return INVALID_STAMP
+        return _in_range(round(stamp * NS_PER_S))
     for sec_key, ns_key in (("sec", "nanosec"), ("sec", "nsec"), ("secs", "nsecs")):
         if has_path(stamp, sec_key) and has_path(stamp, ns_key):
-            return int(get_path(stamp, sec_key)) * NS_PER_S + int(get_path(stamp, ns_key))
-    return 0
+            sec, ns = get_path(stamp, sec_key), get_path(stamp, ns_key)
+            if not (_whole(sec) and _whole(ns)):
+                return INVALID_STAMP
+            return _in_range(int(sec) * NS_PER_S + int(ns))
+    return INVALID_STAMP
 
 
 def anchor_key(value: Any) -> str:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import mmap
 import struct
 import zlib
+from array import array
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +45,10 @@ _U64 = struct.Struct("<Q")
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, len(compression)
 _MESSAGE_HEAD = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
 _BLOCK = 16384  # message records gathered at once (bounds the index arrays)
+# bytes one chunk may decompress to: 32x the 4 MiB chunks of `ros2 bag record` and the mcap
+# CLI; a larger declared size is a decompression bomb or a corrupt header, not a real chunk
+MAX_CHUNK_BYTES = 128 * 1024 * 1024
+_READ_PIECE = 16 * 1024 * 1024  # streaming decompression output per read, bytes
 
 
 @dataclass(frozen=True)
@@ -142,9 +147,13 @@ def _string_map(buf: bytes | memoryview, pos: int) -> tuple[dict[str, str], int]
     return out, pos
 
 
-def _walk(buf: bytes | memoryview, pos: int, end: int) -> tuple[list[int], int]:
-    """Start offsets of the complete records in buf[pos:end], and where the walk stopped."""
-    starts: list[int] = []
+def _walk(buf: bytes | memoryview, pos: int, end: int) -> tuple[array, int]:
+    """Start offsets of the complete records in buf[pos:end], and where the walk stopped.
+
+    The offsets are an int64 `array` (8 bytes per record, not a list of Python ints: a
+    chunk of empty 9-byte records must not take 4x its size).
+    """
+    starts = array("q")
     append = starts.append
     unpack = _U64.unpack_from
     while pos + 9 <= end:
@@ -257,7 +266,7 @@ class _Scanner:
                 self.result.warnings.append(
                     f"chunk: {size - stop} trailing bytes are not a complete record"
                 )
-            s = np.asarray(starts, dtype=np.int64)
+            s = np.frombuffer(starts, dtype=np.int64) if len(starts) else np.zeros(0, np.int64)
         else:
             ends = msg + 9 + _u64_at(arr, msg + 1)
             gap_from = np.concatenate([[0], ends])
@@ -272,9 +281,9 @@ class _Scanner:
             return
         ops = arr[s]
         is_msg = ops == OP_MESSAGE
-        for pos, op in zip(s[~is_msg].tolist(), ops[~is_msg].tolist(), strict=True):
-            if op in (OP_SCHEMA, OP_CHANNEL):
-                self._record(data, pos, op)
+        defs = (ops == OP_SCHEMA) | (ops == OP_CHANNEL)  # only these (not a list of all)
+        for pos, op in zip(s[defs].tolist(), ops[defs].tolist(), strict=True):
+            self._record(data, pos, op)
         self._messages(data, arr, s[is_msg])
 
     def _chunk(
@@ -292,6 +301,9 @@ class _Scanner:
         p += clen
         rlen = _U64.unpack_from(buf, p)[0]
         p += 8
+        if compression and usize > MAX_CHUNK_BYTES:
+            raise _BadChunk(f"declares {usize} bytes uncompressed, more than the "
+                            f"{MAX_CHUNK_BYTES >> 20} MiB limit of a chunk")
         end = p + rlen if truncated_end is None else min(p + rlen, truncated_end)
         data = _decompress(compression, memoryview(buf)[p:end], usize,
                            partial=truncated_end is not None)
@@ -313,7 +325,7 @@ class _Scanner:
     def scan(self, buf: bytes) -> None:
         starts, stop = _walk(buf, len(MAGIC), len(buf))
         arr = np.frombuffer(buf, dtype=np.uint8)
-        s = np.asarray(starts, dtype=np.int64)
+        s = np.frombuffer(starts, dtype=np.int64) if len(starts) else np.zeros(0, np.int64)
         ops = arr[s] if len(s) else np.zeros(0, np.uint8)
         ends = np.flatnonzero((ops == OP_DATA_END) | (ops == OP_FOOTER))
         complete = bool(len(ends))
@@ -325,7 +337,8 @@ class _Scanner:
                     self._record(buf, pos, op)
             s, ops = s[: ends[0]], ops[: ends[0]]
         is_msg = ops == OP_MESSAGE
-        other = list(zip(s[~is_msg].tolist(), ops[~is_msg].tolist(), strict=True))
+        used = np.isin(ops, (OP_SCHEMA, OP_CHANNEL, OP_CHUNK, OP_MESSAGE_INDEX, OP_METADATA))
+        other = list(zip(s[used].tolist(), ops[used].tolist(), strict=True))
         i = 0
         while i < len(other):
             pos, op = other[i]
@@ -355,6 +368,11 @@ class _Scanner:
             before = sum(c.count for c in self.result.channels.values())
             try:
                 self._chunk(buf, stop, [], truncated_end=len(buf))
+            except _BadChunk as e:
+                self.result.warnings.append(f"incomplete last chunk skipped: it {e}")
+                return
+            except LogReadError:
+                raise
             except Exception:  # best effort on a cut-off chunk
                 pass
             got = sum(c.count for c in self.result.channels.values()) - before
@@ -393,25 +411,59 @@ def _checked_index(arr: NDArray[np.uint8], index: np.ndarray) -> np.ndarray | No
     return s
 
 
+class _BadChunk(ValueError):
+    """A chunk that is skipped whole (declared sizes over the limits, a bomb)."""
+
+
+def _read_capped(read: Callable[[int], bytes], cap: int, partial: bool) -> bytes:
+    """Up to cap + 1 bytes from a decompressing `read` (more than `cap` means too much)."""
+    import zstandard
+
+    parts: list[bytes] = []
+    got = 0
+    while got <= cap:
+        try:
+            piece = read(min(cap + 1 - got, _READ_PIECE))
+        except zstandard.ZstdError:
+            if not partial:
+                raise
+            break  # a cut-off stream: keep what came out before the cut
+        if not piece:
+            break
+        parts.append(piece)
+        got += len(piece)
+    return b"".join(parts)
+
+
 def _decompress(
     compression: str, data: memoryview, size: int, partial: bool = False
 ) -> bytes | memoryview:
-    """Chunk records as bytes; with `partial`, as much as a cut-off stream yields."""
+    """Chunk records as bytes; with `partial`, as much as a cut-off stream yields.
+
+    Streaming, with the output capped at the chunk's declared size (itself at most
+    MAX_CHUNK_BYTES): a frame that holds more than the chunk declares is a _BadChunk before
+    more than that is allocated, whatever its own header says.
+    """
     if compression == "":
         return data
+    cap = min(size, MAX_CHUNK_BYTES)
     if compression == "zstd":
         import zstandard
 
-        if partial:
-            return zstandard.ZstdDecompressor().decompressobj().decompress(data)
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if compression == "lz4":
+        reader = zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=True)
+        out = _read_capped(reader.read, cap, partial)
+    elif compression == "lz4":
         import lz4.frame
 
-        if partial:
-            return lz4.frame.LZ4FrameDecompressor().decompress(data)
-        return lz4.frame.decompress(data)
-    raise LogReadError(f"unsupported chunk compression {compression!r}")
+        dec = lz4.frame.LZ4FrameDecompressor()
+        out = dec.decompress(data, max_length=cap + 1)
+        if not partial and len(out) <= cap and not dec.eof:
+            raise ValueError("lz4 frame ends before its end mark")
+    else:
+        raise LogReadError(f"unsupported chunk compression {compression!r}")
+    if len(out) > cap:
+        raise _BadChunk(f"decompresses to more than its declared {size} bytes")
+    return out
 
 
 def scan_mcap(path: Path, want: WantFn, data: bytes | mmap.mmap | None = None) -> ScanResult:

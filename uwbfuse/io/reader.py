@@ -30,7 +30,16 @@ from uwbfuse.config import Config, MapConfig
 from uwbfuse.errors import LogReadError
 from uwbfuse.io import cdr_fast, msgdefs, ros2msg
 from uwbfuse.io.decoders import DecoderUnavailable, generic_decoder
-from uwbfuse.io.fields import MissingField, anchor_key, get_path, has_path, is_valid, stamp_ns
+from uwbfuse.io.fields import (
+    MAX_ANCHOR_ID_CHARS,
+    MAX_COORD_M,
+    MissingField,
+    anchor_key,
+    get_path,
+    has_path,
+    is_valid,
+    stamp_ns,
+)
 from uwbfuse.io.mcap_raw import MessageRefs, RawChannel, ScanResult
 from uwbfuse.io.rosbag2 import scan_log
 from uwbfuse.io.writer import ANCHORS_METADATA, MAP_METADATA
@@ -57,6 +66,20 @@ SKIP_NON_FINITE_RANGE = "non-finite range"
 SKIP_NON_POSITIVE_RANGE = "non-positive range"  # 0 is many UWB drivers' "no range"
 SKIP_RANGE_BOUNDS = "range outside [min_range, max_range]"
 SKIP_NO_WHEEL_JOINTS = "joint state without the configured wheel joints"
+SKIP_BAD_STAMP = "negative or unreadable stamp"
+SKIP_FAR_STAMP = "stamp far from the rest of the log"
+SKIP_LONG_ANCHOR_ID = f"anchor id longer than {MAX_ANCHOR_ID_CHARS} characters"
+
+# Physical bounds on the sensor values read (beyond them a sample is corrupt, not a
+# reading): counted skips, as NaN values are.
+MAX_GYRO_RAD_S = 200.0  # 11,500 deg/s: 5x the full scale of the fastest MEMS gyros
+MAX_ACCEL_M_S2 = 2000.0  # 200 g: the range of high-g shock accelerometers
+MAX_WHEEL_SPEED_M_S = 100.0  # 360 km/h: no wheeled indoor vehicle comes near
+MAX_WHEEL_YAW_RATE_RAD_S = 100.0  # 16 turns per second
+# Sensor stamps more than this from every other sensor stamp are another recording or a
+# broken clock, not a gap in this log: they are dropped (else one stamp a year off would
+# stretch the output grid over that year).
+MAX_STAMP_GAP_NS = 3600 * 1_000_000_000
 
 
 def skip_duplicate(role: str) -> str:
@@ -72,6 +95,17 @@ def skip_non_finite(role: str) -> str:
 def skip_undecodable(topic: str) -> str:
     """Skip reason for messages whose bytes do not decode."""
     return f"undecodable message on {topic}"
+
+
+def skip_malformed(topic: str) -> str:
+    """Skip reason for decoded messages whose fields hold no usable number."""
+    return f"message with an unusable field on {topic}"
+
+
+# skip reasons per role: samples beyond the physical bounds (MAX_GYRO_RAD_S, ...), and a
+# stream of one sample (no rate, no time span)
+SKIP_IMPLAUSIBLE = "implausible {} sample (beyond the physical bounds)"
+SKIP_LONE = "lone {} sample (a stream needs at least two)"
 
 
 _ACCEPTED = {
@@ -194,6 +228,32 @@ def _kind(role: str, type_name: str, msg: Any) -> str:
     return "pose"
 
 
+_BAD_VALUE = (TypeError, ValueError, OverflowError, AttributeError)
+
+
+def _per_message(
+    msgs: list[Any], fn: Any, topic: str, report: ReadReport
+) -> tuple[np.ndarray, list[Any]]:
+    """fn(message) for every message; those whose fields are not usable (a list where a
+    number belongs, text, an int too large for a float) are counted and left out."""
+    keep: list[int] = []
+    rows: list[Any] = []
+    for i, m in enumerate(msgs):
+        try:
+            rows.append(fn(m))
+        except MissingField:
+            raise
+        except _BAD_VALUE:
+            continue
+        keep.append(i)
+    report.skip(skip_malformed(topic), len(msgs) - len(keep))
+    return np.asarray(keep, dtype=np.int64), rows
+
+
+def _floats(rows: list[Any], width: int) -> np.ndarray:
+    return np.array(rows, dtype=np.float64).reshape(len(rows), width)
+
+
 def _extract_generic(
     sink: _ChannelSink, role: str, msgs: list[Any], log_time: np.ndarray, cols: _Columns,
     config: Config, report: ReadReport,
@@ -202,32 +262,45 @@ def _extract_generic(
     if not msgs:
         return
     kind = _kind(role, sink.type_name, msgs[0])
+    topic = sink.channel.topic
     stamps = np.array([stamp_ns(m) for m in msgs], dtype=np.int64)
     try:
-        if kind == "imu":
-            g = np.array([_vec(m, "angular_velocity") for m in msgs], dtype=np.float64)
-            a = np.array([_vec(m, "linear_acceleration") for m in msgs], dtype=np.float64)
-            cols.add(stamps, log_time, gyro=g, accel=a)
-        elif kind == "odometry" and role == WHEEL:
-            v = [float(get_path(m, "twist.twist.linear.x")) for m in msgs]
-            w = [float(get_path(m, "twist.twist.angular.z")) for m in msgs]
-            cols.add(stamps, log_time, v=np.array(v), omega=np.array(w))
-        elif kind == "joint_state":
+        if kind == "joint_state":
             _joint_states(msgs, stamps, log_time, cols, config, report)
+            return
+        if kind == "mapped":
+            _mapped_ranges(msgs, stamps, log_time, cols, config, report, topic)
+            return
+        if kind == "imu":
+            k, rows = _per_message(msgs, lambda m: (*_vec(m, "angular_velocity"),
+                                                    *_vec(m, "linear_acceleration")),
+                                   topic, report)
+            v6 = _floats(rows, 6)
+            cols.add(stamps[k], log_time[k], gyro=v6[:, :3], accel=v6[:, 3:])
+        elif kind == "odometry" and role == WHEEL:
+            k, rows = _per_message(msgs, lambda m: (float(get_path(m, "twist.twist.linear.x")),
+                                                    float(get_path(m, "twist.twist.angular.z"))),
+                                   topic, report)
+            v2 = _floats(rows, 2)
+            cols.add(stamps[k], log_time[k], v=v2[:, 0], omega=v2[:, 1])
         elif kind in ("odometry", "pose", "transform"):
             base = {"odometry": "pose.pose", "pose": "pose", "transform": "transform"}[kind]
             pname, qname = ("translation", "rotation") if kind == "transform" else (
                 "position", "orientation")
-            p = np.array([_vec(m, f"{base}.{pname}") for m in msgs], dtype=np.float64)
-            q = np.array([_vec(m, f"{base}.{qname}", "xyzw") for m in msgs], dtype=np.float64)
-            cols.add(stamps, log_time, position=p, quat=q)
-        elif kind == "range":
-            ids = np.array([anchor_key(get_path(m, "header.frame_id")) for m in msgs],
-                           dtype=object)
-            r = np.array([float(get_path(m, "range")) for m in msgs])
-            cols.add(stamps, log_time, anchor=ids, range=r, valid=np.ones(len(msgs), bool))
-        else:
-            _mapped_ranges(msgs, stamps, log_time, cols, config)
+            k, rows = _per_message(msgs, lambda m: (*_vec(m, f"{base}.{pname}"),
+                                                    *_vec(m, f"{base}.{qname}", "xyzw")),
+                                   topic, report)
+            v7 = _floats(rows, 7)
+            cols.add(stamps[k], log_time[k], position=v7[:, :3], quat=v7[:, 3:])
+        else:  # sensor_msgs/Range
+            k, rows = _per_message(msgs, lambda m: (anchor_key(get_path(m, "header.frame_id")),
+                                                    float(get_path(m, "range"))),
+                                   topic, report)
+            ids = np.empty(len(rows), dtype=object)
+            ids[:] = [r[0] for r in rows]
+            rng = np.array([r[1] for r in rows], dtype=np.float64)
+            cols.add(stamps[k], log_time[k], anchor=ids, range=rng,
+                     valid=np.ones(len(rows), bool))
     except MissingField as e:
         raise _FieldError(str(e.args[0])) from None
 
@@ -239,12 +312,14 @@ def _joint_states(
     wc = config.wheel
     keep, vl, vr = [], [], []
     for i, m in enumerate(msgs):
-        names = list(get_path(m, "name"))
-        vel = list(get_path(m, "velocity"))
         try:
+            names = list(get_path(m, "name"))
+            vel = list(get_path(m, "velocity"))
             li, ri = names.index(wc.left_joint), names.index(wc.right_joint)
             wl, wr = float(vel[li]), float(vel[ri])
-        except (ValueError, IndexError):
+        except MissingField:
+            raise
+        except (*_BAD_VALUE, IndexError):
             report.skip(SKIP_NO_WHEEL_JOINTS)
             continue
         keep.append(i)
@@ -252,34 +327,50 @@ def _joint_states(
         vr.append(wr)
     k = np.asarray(keep, dtype=np.int64)
     wl_a, wr_a = np.asarray(vl, dtype=np.float64), np.asarray(vr, dtype=np.float64)
-    v = wc.radius * (wl_a + wr_a) / 2.0
-    omega = wc.radius * (wr_a - wl_a) / wc.track_width
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 rad/s: dropped as implausible
+        v = wc.radius * (wl_a + wr_a) / 2.0
+        omega = wc.radius * (wr_a - wl_a) / wc.track_width
     cols.add(stamps[k], log_time[k], v=v, omega=omega)
 
 
 def _mapped_ranges(
-    msgs: list[Any], stamps: np.ndarray, log_time: np.ndarray, cols: _Columns, config: Config
+    msgs: list[Any], stamps: np.ndarray, log_time: np.ndarray, cols: _Columns, config: Config,
+    report: ReadReport, topic: str,
 ) -> None:
     """Ranges of a non-Range type through the [uwb] field mapping (arrays included)."""
     u = config.uwb
     t_out, lt_out, ids, rng, valid = [], [], [], [], []
+    bad = 0
     for m, t, lt in zip(msgs, stamps.tolist(), log_time.tolist(), strict=True):
-        elems = get_path(m, u.array_field) if u.array_field else (m,)
-        for e in elems:
+        try:
+            elems = get_path(m, u.array_field) if u.array_field else (m,)
+            got = [(anchor_key(get_path(e, u.anchor_field)),
+                    _to_float(get_path(e, u.range_field)),
+                    is_valid(get_path(e, u.valid_field)) if u.valid_field else True)
+                   for e in elems]
+        except MissingField:
+            raise
+        except _BAD_VALUE:  # an "array" that is a number, elements without fields
+            bad += 1
+            continue
+        for a, r, ok in got:
             t_out.append(t)
             lt_out.append(lt)
-            ids.append(anchor_key(get_path(e, u.anchor_field)))
-            rng.append(_to_float(get_path(e, u.range_field)))
-            valid.append(is_valid(get_path(e, u.valid_field)) if u.valid_field else True)
+            ids.append(a)
+            rng.append(r)
+            valid.append(ok)
+    report.skip(skip_malformed(topic), bad)
+    anchor = np.empty(len(ids), dtype=object)
+    anchor[:] = ids
     cols.add(np.array(t_out, dtype=np.int64), np.array(lt_out, dtype=np.int64),
-             anchor=np.array(ids, dtype=object), range=np.array(rng, dtype=np.float64),
+             anchor=anchor, range=np.array(rng, dtype=np.float64),
              valid=np.array(valid, dtype=bool))
 
 
 def _to_float(v: Any) -> float:
     try:
         return float(v)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return math.nan
 
 
@@ -421,14 +512,31 @@ def _sort_dedup(
     return kept
 
 
-def _finite_rows(role: str, report: ReadReport, *arrays: np.ndarray) -> np.ndarray | None:
-    """Mask of the rows with finite values in every array; None if all are finite."""
-    ok = np.ones(len(arrays[0]), dtype=bool)
-    for a in arrays:
-        ok &= np.all(np.isfinite(a.reshape(len(a), -1)), axis=1)
-    bad = int((~ok).sum())
-    report.skip(skip_non_finite(role), bad)
-    return ok if bad else None
+def _row_all(ok: np.ndarray) -> np.ndarray:
+    """Per row, whether every value of a (n, ...) boolean array is true (n may be 0)."""
+    return ok if ok.ndim == 1 else ok.all(axis=tuple(range(1, ok.ndim)))
+
+
+def _good_rows(
+    t: np.ndarray, values: list[np.ndarray], bounds: list[float | None], role: str,
+    report: ReadReport,
+) -> np.ndarray | None:
+    """Mask of the rows with a usable stamp and finite, physically plausible values
+    (|value| <= bound where a bound is given); None if every row is."""
+    good_t = t >= 0
+    finite = np.ones(len(t), dtype=bool)
+    plausible = np.ones(len(t), dtype=bool)
+    for a, bound in zip(values, bounds, strict=True):
+        ok = np.isfinite(a)
+        finite &= _row_all(ok)
+        if bound is not None:
+            with np.errstate(invalid="ignore"):
+                plausible &= _row_all(~ok | (np.abs(a) <= bound))
+    report.skip(SKIP_BAD_STAMP, int((~good_t).sum()))
+    report.skip(skip_non_finite(role), int((good_t & ~finite).sum()))
+    report.skip(SKIP_IMPLAUSIBLE.format(role), int((good_t & finite & ~plausible).sum()))
+    ok = good_t & finite & plausible
+    return None if bool(ok.all()) else ok
 
 
 def _rows(sel: np.ndarray | None, *arrays: np.ndarray) -> list[np.ndarray]:
@@ -437,11 +545,18 @@ def _rows(sel: np.ndarray | None, *arrays: np.ndarray) -> list[np.ndarray]:
 
 
 def _clean(
-    t: np.ndarray, values: list[np.ndarray], role: str, report: ReadReport
+    t: np.ndarray, values: list[np.ndarray], role: str, report: ReadReport,
+    bounds: list[float | None] | None = None,
 ) -> list[np.ndarray]:
-    """[t, *values] without non-finite rows and exact duplicates, sorted by stamp."""
-    cols = _rows(_finite_rows(role, report, *values), t, *values)
-    return _rows(_sort_dedup(cols[0], cols[1:], role, report), *cols)
+    """[t, *values] without bad stamps, non-finite or implausible rows and exact
+    duplicates, sorted by stamp. A single sample left is dropped too (no rate, no span)."""
+    bounds = bounds if bounds is not None else [None] * len(values)
+    cols = _rows(_good_rows(t, values, bounds, role, report), t, *values)
+    cols = _rows(_sort_dedup(cols[0], cols[1:], role, report), *cols)
+    if len(cols[0]) == 1:
+        report.skip(SKIP_LONE.format(role))
+        cols = [c[:0] for c in cols]
+    return cols
 
 
 def _imu_stream(r: _Role, topic: str, report: ReadReport) -> ImuStream | None:
@@ -449,7 +564,8 @@ def _imu_stream(r: _Role, topic: str, report: ReadReport) -> ImuStream | None:
         return None
     c = r.columns
     t = _stamps(c, IMU, topic, report)
-    t, g, a = _clean(t, [c.cat("gyro", (3,)), c.cat("accel", (3,))], "imu", report)
+    t, g, a = _clean(t, [c.cat("gyro", (3,)), c.cat("accel", (3,))], "imu", report,
+                     [MAX_GYRO_RAD_S, MAX_ACCEL_M_S2])
     return ImuStream(t, np.ascontiguousarray(g), np.ascontiguousarray(a))
 
 
@@ -458,7 +574,8 @@ def _wheel_stream(r: _Role, topic: str, report: ReadReport) -> WheelStream | Non
         return None
     c = r.columns
     t = _stamps(c, "wheel", topic, report)
-    t, v, w = _clean(t, [c.cat("v"), c.cat("omega")], "wheel", report)
+    t, v, w = _clean(t, [c.cat("v"), c.cat("omega")], "wheel", report,
+                     [MAX_WHEEL_SPEED_M_S, MAX_WHEEL_YAW_RATE_RAD_S])
     return WheelStream(t, v, w)
 
 
@@ -468,7 +585,7 @@ def _gt_stream(r: _Role, topic: str, report: ReadReport) -> PoseStream | None:
     c = r.columns
     t = _stamps(c, "ground-truth", topic, report)
     t, p, q = _clean(t, [c.cat("position", (3,)), c.cat("quat", (4,))], "ground-truth",
-                     report)
+                     report, [MAX_COORD_M, None])
     norm = np.linalg.norm(q, axis=1)
     identity = np.all(q[:, :3] == 0.0, axis=1) & ((q[:, 3] == 1.0) | (q[:, 3] == 0.0))
     has_orientation = bool(len(q)) and not bool(np.all(identity))
@@ -489,21 +606,33 @@ def _range_stream(
     ids = c.cat("anchor", dtype=object)
     rng = c.cat("range")
     valid = c.cat("valid", dtype=bool)
-    keep = valid.copy()
-    report.skip(SKIP_INVALID_FLAG, int((~valid).sum()))
+    keep = t >= 0
+    report.skip(SKIP_BAD_STAMP, int((~keep).sum()))
+    report.skip(SKIP_INVALID_FLAG, int((keep & ~valid).sum()))
+    keep &= valid
     anchor = np.full(len(t), -1, dtype=np.int32)
     if anchors is None:
         report.skip(SKIP_NO_ANCHOR_MAP, int(keep.sum()))
         keep[:] = False
     elif len(ids):
-        uniq, inv = np.unique(ids.astype(str), return_inverse=True)
+        # ids to codes through a dict: np.unique(ids.astype(str)) would build a fixed-width
+        # array as wide as the longest id for every range
+        codes: dict[str, int] = {}
+        inv = np.fromiter((codes.setdefault(a, len(codes)) for a in ids.tolist()),
+                          dtype=np.int64, count=len(ids))
+        uniq = list(codes)
+        too_long = np.array([len(a) > MAX_ANCHOR_ID_CHARS for a in uniq], dtype=bool)
+        long_rows = keep & too_long[inv]
+        report.skip(SKIP_LONG_ANCHOR_ID, int(long_rows.sum()))
+        keep &= ~long_rows
         known = {a: i for i, a in enumerate(anchors.ids)}
-        lut = np.array([known.get(str(a), -1) for a in uniq], dtype=np.int32)
-        anchor = lut[inv.reshape(-1)]
+        lut = np.array([known.get(a, -1) for a in uniq], dtype=np.int32)
+        anchor = lut[inv]
         unknown = keep & (anchor < 0)
         if unknown.any():
             report.skip(SKIP_UNKNOWN_ANCHOR, int(unknown.sum()))
-            names = sorted({str(x) for x in uniq[lut < 0]})
+            names = sorted({a if a.isprintable() else repr(a)
+                            for a, bad in zip(uniq, (lut < 0) & ~too_long, strict=True) if bad})
             report.warnings.append(
                 f"{topic}: ranges to anchors not in the anchor map: {', '.join(names[:10])}"
                 + (" ..." if len(names) > 10 else "")
@@ -530,6 +659,20 @@ def _range_stream(
     return RangeStream(t, anchor.astype(np.int32), rng)
 
 
+def _anchor_xyz(text: str) -> list[float] | None:
+    """[x, y, z] from a `uwb_anchors` value (a JSON array of three numbers), else None."""
+    if len(text) > 1000:  # three numbers; a longer value is not one (a nesting bomb, ...)
+        return None
+    try:
+        xyz = json.loads(text)
+        ok = (isinstance(xyz, list) and len(xyz) == 3
+              and all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                      and math.isfinite(c) and abs(c) <= MAX_COORD_M for c in xyz))
+    except (ValueError, RecursionError, OverflowError):  # bad JSON, deep, int past float
+        return None
+    return [float(c) for c in xyz] if ok else None
+
+
 def _metadata_anchors(source: str, scans: list[ScanResult]) -> AnchorMap | None:
     for scan in scans:
         for name, data in scan.metadata:
@@ -537,18 +680,16 @@ def _metadata_anchors(source: str, scans: list[ScanResult]) -> AnchorMap | None:
                 continue
             out: dict[str, list[float]] = {}
             for k, v in data.items():
-                try:
-                    xyz = json.loads(v)
-                    ok = (isinstance(xyz, list) and len(xyz) == 3
-                          and all(isinstance(c, (int, float)) and math.isfinite(c) for c in xyz))
-                except ValueError:
-                    ok = False
-                if not ok:
+                xyz = _anchor_xyz(v)
+                if xyz is None or len(k) > MAX_ANCHOR_ID_CHARS:
+                    shown = v if len(v) <= 60 else v[:60] + "..."
                     raise LogReadError(
-                        f"{source}: metadata record {ANCHORS_METADATA!r}: anchor {k!r} is "
-                        f"{v!r}, expected a JSON array [x, y, z] of finite numbers"
+                        f"{source}: metadata record {ANCHORS_METADATA!r}: anchor "
+                        f"{k[:60]!r} is {shown!r}, expected a JSON array [x, y, z] of finite "
+                        f"numbers within {MAX_COORD_M:g} m (and an id of at most "
+                        f"{MAX_ANCHOR_ID_CHARS} characters)"
                     )
-                out[k] = [float(c) for c in xyz]
+                out[k] = xyz
             if out:
                 return AnchorMap.from_dict(out)
     return None
@@ -579,6 +720,40 @@ def _log_map(source: str, scans: list[ScanResult], config: Config) -> MapConfig 
     if m.obstacles or m.walls or m.boundary:
         return m
     return _metadata_map(source, scans)
+
+
+def _far_stamps(streams: list[Any], report: ReadReport) -> list[Any]:
+    """The sensor streams without the samples stamped more than MAX_STAMP_GAP_NS from
+    every other one: of the groups of stamps that gaps of more than that separate, the
+    group with the most samples is the log (a range stamped a year ahead, an IMU
+    sample on another clock, a stamp of 0 with a log time of 0 are not)."""
+    present = [x for x in streams if x is not None and len(x)]
+    if not present:
+        return streams
+    t = np.sort(np.concatenate([x.t_ns for x in present]))
+    cut = np.flatnonzero(np.diff(t) > MAX_STAMP_GAP_NS)
+    if not len(cut):
+        return streams
+    starts = np.concatenate([[0], cut + 1])
+    ends = np.concatenate([cut, [len(t) - 1]])
+    best = int(np.argmax(ends - starts))
+    lo, hi = int(t[starts[best]]), int(t[ends[best]])
+    out = []
+    for x in streams:
+        if x is None or not len(x):
+            out.append(x)
+            continue
+        a = np.searchsorted(x.t_ns, lo, side="left")
+        b = np.searchsorted(x.t_ns, hi, side="right")
+        report.skip(SKIP_FAR_STAMP, len(x) - int(b - a))
+        out.append(x.slice(int(a), int(b)))
+    dropped = len(t) - int(ends[best] - starts[best] + 1)
+    report.warnings.append(
+        f"{dropped} sensor samples stamped more than {MAX_STAMP_GAP_NS // 10**9} s from the "
+        f"rest of the log (the {int(ends[best] - starts[best] + 1)} samples from "
+        f"{lo / 1e9:.3f} s to {hi / 1e9:.3f} s) were dropped"
+    )
+    return out
 
 
 def _role_topics(config: Config) -> dict[str, list[str]]:
@@ -636,10 +811,15 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
     anchors = (AnchorMap.from_dict(dict(config.anchors)) if config.anchors
                else _metadata_anchors(source, scans))
     topics = config.topics
+    imu, wheel, ranges = _far_stamps([
+        _imu_stream(roles[IMU], topics.imu, report),
+        _wheel_stream(roles[WHEEL], topics.wheel_odom, report),
+        _range_stream(roles[UWB], topics.uwb, anchors, config, report),
+    ], report)
     out = SensorLog(
-        imu=_imu_stream(roles[IMU], topics.imu, report),
-        wheel=_wheel_stream(roles[WHEEL], topics.wheel_odom, report),
-        ranges=_range_stream(roles[UWB], topics.uwb, anchors, config, report),
+        imu=imu,
+        wheel=wheel,
+        ranges=ranges,
         anchors=anchors,
         ground_truth=_gt_stream(roles[GT], topics.ground_truth, report),
         source=source,

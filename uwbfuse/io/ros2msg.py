@@ -26,6 +26,14 @@ _ARRAY = re.compile(r"^(?P<base>[^\[]+)(\[(?P<size><=)?(?P<n>\d*)\])?$")
 
 Layout = tuple[object, ...]
 
+MAX_DEPTH = 32  # nesting levels of message types; real ROS 2 messages nest fewer than 10
+MAX_FIELDS = 100_000  # primitive fields of one flattened message (a PointCloud2 has ~20)
+MAX_SCHEMA_BYTES = 1 << 20  # schema text, bytes; ros2 bag's largest embedded are ~100 kB
+
+
+class SchemaError(ValueError):
+    """A schema that cannot describe a message: recursive, nested too deep or too large."""
+
 
 def normalize_type(name: str, package: str = "") -> str:
     """ "pkg/msg/T" and "pkg/T" -> "pkg/T"; a bare "T" -> "package/T"."""
@@ -63,44 +71,83 @@ def parse_sections(schema_name: str, text: str) -> dict[str, list[str]]:
     return sections
 
 
-def flat_layout(type_name: str, sections: dict[str, list[str]], depth: int = 0) -> Layout | None:
-    """The flattened primitive layout of `type_name`, or None if a type is not defined."""
-    key = normalize_type(type_name)
-    fields = sections.get(key)
-    if fields is None or depth > 32:
+def _field_type(ftype: str, package: str) -> tuple[str, int | None] | None:
+    """(base type, array size: None scalar, -1 sequence, n fixed) of a field, or None."""
+    m = _ARRAY.match(ftype)
+    if m is None:
         return None
-    package = key.split("/")[0]
-    out: list[object] = []
-    for ftype in fields:
-        m = _ARRAY.match(ftype)
-        if m is None:
+    base = m.group("base")
+    if base.startswith("string<=") or base.startswith("wstring<="):
+        base = base.split("<=")[0]
+    if m.group(2) is None:
+        size = None
+    elif m.group("size") or not m.group("n"):
+        size = -1
+    else:
+        size = int(m.group("n"))
+    return (base if base in PRIMITIVES else normalize_type(base, package)), size
+
+
+def flat_layout(type_name: str, sections: dict[str, list[str]]) -> Layout | None:
+    """The flattened primitive layout of `type_name`, or None if a type is not defined.
+
+    Raises SchemaError for a type that contains itself, nests deeper than MAX_DEPTH or
+    flattens to more than MAX_FIELDS fields (checked before anything is built: a type with
+    two fields of the next type, 30 levels down, would flatten to 2^30 fields).
+    """
+    done: dict[str, Layout | None] = {}
+    sizes: dict[str, int] = {}
+
+    def visit(key: str, stack: tuple[str, ...]) -> Layout | None:
+        if key in done:
+            return done[key]
+        if key in stack:
+            raise SchemaError(f"type {key} contains itself")
+        if len(stack) >= MAX_DEPTH:
+            raise SchemaError(f"types nest deeper than {MAX_DEPTH} levels")
+        fields = sections.get(key)
+        if fields is None:
             return None
-        base = m.group("base")
-        if base.startswith("string<=") or base.startswith("wstring<="):
-            base = base.split("<=")[0]
-        if m.group(2) is None:
-            size = None
-        elif m.group("size") or not m.group("n"):
-            size = -1
-        else:
-            size = int(m.group("n"))
-        if base in PRIMITIVES:
-            elem: object = base
-        else:
-            sub = flat_layout(normalize_type(base, package), sections, depth + 1)
-            if sub is None:
-                return None
-            elem = sub
-        if size is None:
-            if isinstance(elem, tuple):
-                out.extend(elem)
+        package = key.split("/")[0]
+        out: list[object] = []
+        count = 0
+        result: Layout | None = None
+        for ftype in fields:
+            parsed = _field_type(ftype, package)
+            if parsed is None:
+                break
+            base, size = parsed
+            if base in PRIMITIVES:
+                elem: object = base
+                n = 1
             else:
+                sub = visit(base, (*stack, key))
+                if sub is None:
+                    break
+                elem, n = sub, sizes[base]
+            count += n
+            if count > MAX_FIELDS:
+                raise SchemaError(f"type {key} has more than {MAX_FIELDS} fields")
+            if size is None and isinstance(elem, tuple):
+                out.extend(elem)
+            elif size is None:
                 out.append(elem)
+            else:
+                out.append(("array", elem, size))
         else:
-            out.append(("array", elem, size))
-    return tuple(out)
+            result = tuple(out)
+        done[key] = result
+        sizes[key] = count
+        return result
+
+    return visit(normalize_type(type_name), ())
 
 
 def layout_of(schema_name: str, text: str) -> Layout | None:
-    """Flattened layout of a schema record's top-level type (None if not parseable)."""
+    """Flattened layout of a schema record's top-level type (None if not parseable).
+
+    Raises SchemaError for a schema over the limits (recursive, too deep, too large).
+    """
+    if len(text) > MAX_SCHEMA_BYTES:
+        raise SchemaError(f"schema text of {len(text)} bytes, more than {MAX_SCHEMA_BYTES}")
     return flat_layout(schema_name, parse_sections(schema_name, text))

@@ -17,12 +17,17 @@ import numpy as np
 
 from uwbfuse.errors import TrajectoryFileError
 from uwbfuse.io.atomic import atomic_open
+from uwbfuse.io.fields import MAX_COORD_M
 from uwbfuse.streams import NS_PER_S, PoseStream
 
 log = logging.getLogger(__name__)
 
 _DECIMAL = re.compile(r"^(?P<sign>[+-]?)(?P<whole>[0-9]*)(?:\.(?P<frac>[0-9]*))?$")
 HEADER = "# t x y z qx qy qz qw  (t: s; x y z: m, base frame in map frame)\n"
+_MAX_NS = (1 << 63) - 1  # stamps are int64 nanoseconds (year 2262)
+# a written quaternion is unit: one with a norm outside [MIN, MAX] is no rotation (and at
+# 1e-200 or 1e200 the norm itself underflows or overflows)
+MIN_QUAT_NORM, MAX_QUAT_NORM = 1e-6, 1e6
 
 
 def _format_stamp(t_ns: int) -> str:
@@ -45,7 +50,7 @@ def _parse_stamp_ns(tok: str) -> int:
         d = Decimal(tok)
     except InvalidOperation:
         raise ValueError(f"bad time {tok!r}") from None
-    if not d.is_finite():
+    if not d.is_finite() or abs(d) > 10 * _MAX_NS:
         raise ValueError(f"bad time {tok!r}")
     return int((d * NS_PER_S).to_integral_value())
 
@@ -107,11 +112,19 @@ def read_tum(path: str | Path) -> PoseStream:
             stamps.append(_parse_stamp_ns(toks[0]))
             row = [float(x) for x in toks[1:]]
         except ValueError:
-            raise TrajectoryFileError(f"{p}:{lineno}: not a number in {line!r}") from None
+            raise TrajectoryFileError(f"{p}:{lineno}: not a number in {line[:80]!r}") from None
+        if not -_MAX_NS <= stamps[-1] <= _MAX_NS:
+            raise TrajectoryFileError(f"{p}:{lineno}: time {toks[0]} s is out of range "
+                                      "(int64 nanoseconds: +-9.2e9 s)")
         if not all(np.isfinite(row)):
-            raise TrajectoryFileError(f"{p}:{lineno}: non-finite value in {line!r}")
-        if row[3] == row[4] == row[5] == row[6] == 0.0:
-            raise TrajectoryFileError(f"{p}:{lineno}: zero quaternion")
+            raise TrajectoryFileError(f"{p}:{lineno}: non-finite value in {line[:80]!r}")
+        if max(abs(x) for x in row[:3]) > MAX_COORD_M:
+            raise TrajectoryFileError(f"{p}:{lineno}: position beyond {MAX_COORD_M:g} m in "
+                                      f"{line[:80]!r}")
+        if not MIN_QUAT_NORM <= np.linalg.norm(row[3:7]) <= MAX_QUAT_NORM:
+            what = "zero" if max(abs(x) for x in row[3:7]) < 1 else "huge"
+            raise TrajectoryFileError(f"{p}:{lineno}: {what} quaternion (norm outside "
+                                      f"[{MIN_QUAT_NORM:g}, {MAX_QUAT_NORM:g}]: not a rotation)")
         values.append(row)
     if not stamps:
         raise TrajectoryFileError(f"{p}: no poses in trajectory file")
