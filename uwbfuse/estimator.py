@@ -20,8 +20,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from uwbfuse.methods import Method  # noqa: F401  (re-exported: the public name's old home)
 from uwbfuse.errors import EstimatorError
+from uwbfuse.methods import Method  # noqa: F401  (re-exported: the public name's old home)
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, SensorLog
 
 
