@@ -122,3 +122,25 @@ def test_bad_imu_inflation_is_named(tmp_path: Path, text: str) -> None:
     p.write_text(f"[graph]\nimu_noise_inflation = {text}\n")
     with pytest.raises(ConfigError, match=r"graph.imu_noise_inflation"):
         load_config(p)
+
+
+def test_sections_of_earlier_releases_move_with_a_warning(tmp_path, caplog):
+    """Test that `[ekf]` (read by the UKF and LKF too) loads as `[filter]` and `[wls]
+    lkf_accel_psd` as `[lkf] accel_psd`, each with a deprecation warning, and that a key
+    given under both names is an error."""
+    import logging
+
+    from uwbfuse.config import load_config
+    from uwbfuse.errors import ConfigError
+
+    p = tmp_path / "old.toml"
+    p.write_text("[ekf]\ngating = false\n[wls]\nlkf_accel_psd = 0.7\n")
+    with caplog.at_level(logging.WARNING):
+        cfg = load_config(p)
+    assert cfg.filter.gating is False
+    assert cfg.lkf.accel_psd == 0.7
+    assert "[ekf] is now [filter]" in caplog.text
+    assert "[wls] lkf_accel_psd is now [lkf] accel_psd" in caplog.text
+    p.write_text("[ekf]\ngating = false\n[filter]\ngating = true\n")
+    with pytest.raises(ConfigError, match="given twice"):
+        load_config(p)

@@ -134,7 +134,7 @@ def _run_nees(drop: tuple[str, ...], seeds: tuple[int, ...]) -> tuple[float, flo
     sim = {**LOS, "wheel_scale_sigma": 0.0, "slip_rate": 0.0}
     sc = get_scenario("warehouse")
     cfg = Config()
-    cfg.ekf.imu_noise_inflation = 1.0   # the simulated IMU follows the [imu] figures exactly
+    cfg.filter.imu_noise_inflation = 1.0   # the simulated IMU follows the [imu] figures exactly
     cfg.uwb.sigma = sc.los_sigma
     cfg.wheel.sigma_v = sc.wheel_sigma_v
     cfg.wheel.sigma_lateral = 0.003
@@ -196,7 +196,7 @@ def test_gating_rejects_gross_outliers(method: Method) -> None:
     assert 0.95 * n_out <= n_gated <= n_out + 5
     assert ev.ate_2d.rmse < 0.05
     cfg = Config()
-    cfg.ekf.gating = False
+    cfg.filter.gating = False
     raw = estimate(log, method, cfg)
     ev_raw = evaluate(raw.trajectory, log.ground_truth, max_dt=0.01)
     assert sum(raw.report["ranges_gated"].values()) == 0

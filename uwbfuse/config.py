@@ -371,8 +371,12 @@ class WlsConfig(_Section):
     min_track: float = Field(
         0.3, gt=0, description="track length over which the heading (motion direction) is taken, m"
     )
-    lkf_accel_psd: float = Field(
-        0.5, gt=0, description="LKF white-acceleration spectral density, m^2/s^3"
+
+
+class LkfConfig(_Section):
+    accel_psd: float = Field(
+        0.5, gt=0, description="white-acceleration spectral density of the constant-velocity "
+        "model on the WLS fixes, m^2/s^3"
     )
 
 
@@ -483,9 +487,10 @@ class Config(_Section):
     imu: ImuConfig = Field(default_factory=ImuConfig)
     init: InitConfig = Field(default_factory=InitConfig)
     graph: GraphConfig = Field(default_factory=GraphConfig)
-    ekf: FilterConfig = Field(default_factory=FilterConfig)
+    filter: FilterConfig = Field(default_factory=FilterConfig)  # ekf, ukf and lkf read it
     ukf: UkfConfig = Field(default_factory=UkfConfig)
     wls: WlsConfig = Field(default_factory=WlsConfig)
+    lkf: LkfConfig = Field(default_factory=LkfConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     map: MapConfig = Field(default_factory=MapConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
@@ -540,8 +545,45 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
     return f"{source}: bad value for '{key}': {msg}"
 
 
+# keys of earlier releases: (section, key or None for the whole section) -> new place
+_RENAMED: dict[tuple[str, str | None], tuple[str, str | None]] = {
+    ("ekf", None): ("filter", None),
+    ("wls", "lkf_accel_psd"): ("lkf", "accel_psd"),
+}
+
+
+def _renamed(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """`data` with the keys of earlier releases moved to their sections of today, each
+    move logged once as a deprecation warning; a key given at both places is an error."""
+    import logging
+
+    out = dict(data)
+    for (sec, key), (new_sec, new_key) in _RENAMED.items():
+        if not isinstance(out.get(sec), dict):
+            continue
+        if key is None:
+            moved = out.pop(sec)
+        elif key in out[sec]:
+            out[sec] = dict(out[sec])
+            moved = {new_key: out[sec].pop(key)}
+        else:
+            continue
+        target = dict(out.get(new_sec) or {})
+        clash = sorted(set(target) & set(moved))
+        if clash:
+            raise ConfigError(f"{source}: [{new_sec}] {clash[0]} is given twice (also under its "
+                              f"old name in [{sec}])")
+        target.update(moved)
+        out[new_sec] = target
+        old = f"[{sec}]" if key is None else f"[{sec}] {key}"
+        new = f"[{new_sec}]" if key is None else f"[{new_sec}] {new_key}"
+        logging.getLogger(__name__).warning("%s: %s is now %s", source, old, new)
+    return out
+
+
 def config_from_dict(data: dict[str, Any], source: str = "config") -> Config:
     """Validate a nested dict (as TOML gives it) into a `Config`."""
+    data = _renamed(data, source)
     try:
         return Config.model_validate(data)
     except ValidationError as e:

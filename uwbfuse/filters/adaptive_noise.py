@@ -22,7 +22,7 @@ expected number of LOS/NLOS changes between consecutive ranges of an anchor (fro
 posteriors), with the graph's `nlos_switch` as its prior, same weight.
 
 Gating: a range whose squared innovation, after the mixture correction, exceeds the
-chi-square quantile of `[ekf] gate_probability` times its variance (mixture plus
+chi-square quantile of `[filter] gate_probability` times its variance (mixture plus
 prediction) is rejected (gross outliers, short or long). The prediction variance grows
 through an outage with the process noise, so the gate widens with it and does not lock
 out; the filters' divergence recovery (`base.StreamingFilter`) covers a state that is off
@@ -76,8 +76,8 @@ class RangeNoise:
     def __init__(self, config: Config, n_anchor: int) -> None:
         self.prior = NlosModel.from_config(config.wls).default
         self.model = self.prior
-        self.gating = config.ekf.gating
-        self.gate = gate_threshold(config.ekf.gate_probability, 1)
+        self.gating = config.filter.gating
+        self.gate = gate_threshold(config.filter.gate_probability, 1)
         self.p_last = np.full(n_anchor, self.prior.nlos_prior)
         self.q0 = config.graph.nlos_switch
         self.q = self.q0

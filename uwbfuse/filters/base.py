@@ -124,7 +124,7 @@ class StreamingFilter:
     #: last RECENT accepted ranges exceeds NIS_FACTOR chi2.ppf(gate_probability, RECENT) /
     #: RECENT, the state is probably off (wheel slip, a bad start) rather than the ranges
     #: wrong, and the position/heading covariance is inflated (`_inflate`). Only with gating
-    #: on (`[ekf] gating = false` asks for the plain filter).
+    #: on (`[filter] gating = false` asks for the plain filter).
     RECENT = 24
     GATED_MAX = 12
     NIS_FACTOR = 3.0
@@ -170,7 +170,7 @@ class StreamingFilter:
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.range_noise = RangeNoise(config, len(anchors))
-        self.gating = config.ekf.gating
+        self.gating = config.filter.gating
         self.planar = self.has_wheel and config.graph.planar != "off"
         self.initialiser = initialiser or default_initialiser(config, anchors, streams)
         self._init_pending = True
@@ -208,7 +208,8 @@ class StreamingFilter:
         self.short: np.ndarray = np.zeros(0, dtype=bool)
         self._short_run: Counter[int] = Counter()
         self.nis_max = (
-            self.NIS_FACTOR * gate_threshold(config.ekf.gate_probability, self.RECENT) / self.RECENT
+            self.NIS_FACTOR * gate_threshold(config.filter.gate_probability, self.RECENT)
+            / self.RECENT
         )
         self.gate_resets = 0
         self.repeated = 0

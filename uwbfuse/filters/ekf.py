@@ -12,7 +12,7 @@ widens it to the inputs the graph sees:
   `extrinsics.tag_in_base`), not the paper's squared-range difference. The ranges of a
   window are applied one after another (sequential scalar updates, after the wheel and
   planar rows), each robustly weighted on its own innovation: LOS/NLOS mixture posterior
-  as the measurement, chi-square gate (`[ekf] gate_probability`, `gating`), the mixture
+  as the measurement, chi-square gate (`[filter] gate_probability`, `gating`), the mixture
   fitted to the log's innovations (`adaptive_noise.RangeNoise`); counted per anchor in
   `report()`.
 - Wheel odometry is a base-frame velocity measurement: forward speed v with
@@ -26,7 +26,7 @@ widens it to the inputs the graph sees:
   UWB (IMU + wheels) it starts at the map origin, heading zero, as dead reckoning does.
 - `estimate()` carries the pose covariance from P (ROS order; `pose_covariance`).
 - Covariance updates in Joseph form.
-- Process noise: the `[imu]` densities and bias random walks times `[ekf]
+- Process noise: the `[imu]` densities and bias random walks times `[filter]
   imu_noise_inflation` (default 30, the graph's figure for logs without wheels): a real
   consumer MEMS carried by hand errs far beyond its white noise (scale, misalignment,
   vibration), and a filter that trusts the datasheet figures becomes overconfident, gates
@@ -160,8 +160,8 @@ class ErrorStateEkf(StreamingFilter):
         if not self.has_imu:
             raise EstimatorError("ErrorStateEkf needs IMU data (use UnicycleEkf)")
         self.gravity = config.imu.gravity
-        # Process noise: the [imu] figures times [ekf] imu_noise_inflation (squared: PSDs).
-        self.q_diag = ImuNoise.from_config(config.imu).diag() * config.ekf.imu_noise_inflation**2
+        # Process noise: the [imu] figures times [filter] imu_noise_inflation (squared: PSDs).
+        self.q_diag = ImuNoise.from_config(config.imu).diag() * config.filter.imu_noise_inflation**2
         w = config.wheel
         # wheel forward/lateral/vertical speed and planar z/tilt variances: the configured
         # values as priors, then covariance matching on the innovations

@@ -3,7 +3,7 @@
 
 The INS-UWB AGV paper's filter: state X = [x, vx, y, vy] (plus [z, vz] for 3-D fixes),
 transition Theta = blockdiag([[1, T], [0, 1]]), white-acceleration process noise
-Gamma Q Gamma^T (here the exact discretisation with spectral density `wls.lkf_accel_psd`,
+Gamma Q Gamma^T (here the exact discretisation with spectral density `lkf.accel_psd`,
 m^2/s^3), measurement Z = H X + v with H picking the positions and R the fix covariance of
 `uwbfuse.filters.wls.EpochFixer` (NLOS-weighted least squares per epoch). filterpy
 vocabulary: `x`, `P`, `predict(dt)`, `update(z, R)`, innovation `y`, `S`, gain `K`, Joseph
@@ -105,11 +105,11 @@ class LkfEstimator:
     def __init__(self, config: Config, anchors: AnchorMap, streams: frozenset[str]) -> None:
         self.config = config
         self.fixer = EpochFixer(config, anchors, streams)
-        self.kf = ConstantVelocityKF(self.fixer.dim, config.wls.lkf_accel_psd)
+        self.kf = ConstantVelocityKF(self.fixer.dim, config.lkf.accel_psd)
         self.lever = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.gate = (
-            float(chi2.ppf(config.ekf.gate_probability, self.fixer.dim))
-            if config.ekf.gating else math.inf
+            float(chi2.ppf(config.filter.gate_probability, self.fixer.dim))
+            if config.filter.gating else math.inf
         )
         self.heading = TrackHeading(config.wls.min_track)
         self._t_ns: int | None = None
