@@ -19,7 +19,7 @@ from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError
 from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
-from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
+from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,21 @@ def _never_initialised(log: SensorLog, method: Method) -> str:
     return f"{msg}: {len(log.ranges)} ranges from {len(heard)} anchors ({ids})"
 
 
+def _splice_covariance(causal: PoseStream, head: np.ndarray,
+                       final: PoseStream) -> np.ndarray | None:
+    """Covariances of the causal head `causal[head]` then of `final` (ROS order, map
+    axes); the part without one gets `UNKNOWN_VARIANCE`, None when neither has any."""
+    if causal.covariance is None and final.covariance is None:
+        return None
+
+    def part(s: PoseStream, sel: np.ndarray | slice) -> np.ndarray:
+        if s.covariance is not None:
+            return s.covariance[sel]
+        return np.tile(np.eye(6) * UNKNOWN_VARIANCE, (len(s.t_ns[sel]), 1, 1))
+
+    return np.concatenate([part(causal, head), part(final, slice(None))])
+
+
 def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
     """Run `method` on an already-read log (ground truth is never passed on)."""
     streams = check_inputs(log, method, config)
@@ -142,6 +157,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
                 np.concatenate([res.causal.position[head], traj.position]),
                 np.concatenate([res.causal.quat_xyzw[head], traj.quat_xyzw]),
                 traj.has_orientation,
+                _splice_covariance(res.causal, head, traj),
             )
     if len(traj) == 0:
         raise EstimatorError(_never_initialised(log, method))

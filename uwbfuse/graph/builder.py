@@ -41,7 +41,13 @@ from uwbfuse.graph.uwb import (
     range_factor,
     residual_jumps_by_anchor,
 )
-from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
+from uwbfuse.graph.wheel import (
+    WheelTrack,
+    between_factor,
+    planar_covariance6,
+    se2_between,
+    se2_to_pose3,
+)
 from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
@@ -67,6 +73,10 @@ MAX_SCALE = 0.2  # bound on a range scale error
 # (misclassified NLOS ranges inflated the RMS: factory read 0.042-0.047 for a true 0.026)
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
+# without IMU or wheels: the keyframe-to-keyframe random walk's std per second of interval,
+# rad/s and m/s (an indoor vehicle or walker turns and moves no faster than this)
+RANDOM_WALK_ROT = 1.0
+RANDOM_WALK_TRANS = 2.0
 
 
 @dataclass
@@ -422,6 +432,27 @@ class GraphBuilder:
             return self.pose
         return self.pose.compose(self.delta(tk, np.array([t], np.int64), self.pose, self.vel)[0])
 
+    def motion_noise(self, t_a: int, t_b: int) -> np.ndarray:
+        """Pose3 tangent covariance (rot, trans) of the motion from t_a to t_b as `delta`
+        predicts it: the wheel track's propagated noise (the wheel factor's), else the
+        IMU's white noise over the interval (rotation sigma_g^2 tau, translation
+        sigma_a^2 tau^3 / 3; the velocity's own uncertainty is the caller's), else the
+        random walk of the keyframe chain."""
+        tau = max(t_b - t_a, 0) / NS_PER_S
+        per_kf = tau * self.g.keyframe_rate  # keyframe intervals covered
+        if self.has_wheel and len(self.wheel):
+            oop = self.wheel_records.out_of_plane
+            cov = planar_covariance6(self.wheel.covariance(t_a, t_b, self.cfg.wheel), oop)
+            cov[[0, 1, 5], [0, 1, 5]] *= per_kf  # out-of-plane sigmas are per keyframe
+            return cov
+        if self.has_imu and self.pim_params is not None:
+            sg = float(self.pim_params.getGyroscopeCovariance()[0, 0])
+            sa = float(self.pim_params.getAccelerometerCovariance()[0, 0])
+            return np.diag([sg * tau] * 3 + [sa * tau**3 / 3.0] * 3)
+        dt = 1.0 / self.g.keyframe_rate
+        return np.diag([RANDOM_WALK_ROT**2 * dt * dt * per_kf] * 3
+                       + [RANDOM_WALK_TRANS**2 * dt * dt * per_kf] * 3)
+
     # ---------------------------------------------------------------- factors
     def _planar_prior(self, k: int, pose: gtsam.Pose3) -> gtsam.NonlinearFactor:
         ypr = pose.rotation().ypr()
@@ -557,7 +588,7 @@ class GraphBuilder:
             else:
                 new_pose = wp
         if not self.has_imu and not self.has_wheel:
-            s = pose_sigmas((1.0 * dt,) * 3, (2.0 * dt,) * 3)
+            s = pose_sigmas((RANDOM_WALK_ROT * dt,) * 3, (RANDOM_WALK_TRANS * dt,) * 3)
             inc.graph.add(gtsam.BetweenFactorPose3(X(ka), X(k), gtsam.Pose3(), diagonal(s)))
         if self.planar:
             inc.graph.add(self._planar_prior(k, new_pose))

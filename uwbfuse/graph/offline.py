@@ -105,6 +105,7 @@ class BatchResult:
     scale: np.ndarray
     nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
     wheel_scale: np.ndarray | None = None  # (v, omega) odometry scale factors, None: no wheels
+    graph: gtsam.NonlinearFactorGraph | None = None  # the last LM round's graph (marginals)
 
 
 # Wheel odometry scale calibration (batch). Encoders read the speed and the yaw rate with a
@@ -402,6 +403,7 @@ def _solve_em(
                             None if states is None or st_idx is None
                             else [states.keys[i] for i in st_idx.tolist()])
     static: dict[bool, gtsam.NonlinearFactorGraph] = {}
+    last_graph: list[gtsam.NonlinearFactorGraph] = []
     if states is not None:
         for i, key in enumerate(states.keys):
             values.insert(key, float(states.values[i]))
@@ -436,6 +438,7 @@ def _solve_em(
         params.setAbsoluteErrorTol(1e-6)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
         out = opt.optimize()
+        last_graph[:] = [graph]
         total_it += opt.iterations()
         log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
                   opt.error(), mix)
@@ -506,7 +509,8 @@ def _solve_em(
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
     return BatchResult(values, g, w, r_los, mix, done, total_it, scale,
                        nlos_first and states is not None,
-                       None if wheel_scale is None else wheel_scale.applied.copy())
+                       None if wheel_scale is None else wheel_scale.applied.copy(),
+                       last_graph[0] if last_graph else None)
 
 
 def _search_windows(
