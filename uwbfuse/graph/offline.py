@@ -105,7 +105,9 @@ class BatchResult:
     scale: np.ndarray
     nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
     wheel_scale: np.ndarray | None = None  # (v, omega) odometry scale factors, None: no wheels
-    graph: gtsam.NonlinearFactorGraph | None = None  # the last LM round's graph (marginals)
+    # the graph whose marginals are the poses' covariance (`marginal_graph`), None when
+    # `graph.marginal_covariances` is off
+    graph: gtsam.NonlinearFactorGraph | None = None
 
 
 # Wheel odometry scale calibration (batch). Encoders read the speed and the yaw rate with a
@@ -403,7 +405,6 @@ def _solve_em(
                             None if states is None or st_idx is None
                             else [states.keys[i] for i in st_idx.tolist()])
     static: dict[bool, gtsam.NonlinearFactorGraph] = {}
-    last_graph: list[gtsam.NonlinearFactorGraph] = []
     if states is not None:
         for i, key in enumerate(states.keys):
             values.insert(key, float(states.values[i]))
@@ -438,7 +439,6 @@ def _solve_em(
         params.setAbsoluteErrorTol(1e-6)
         opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
         out = opt.optimize()
-        last_graph[:] = [graph]
         total_it += opt.iterations()
         log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
                   opt.error(), mix)
@@ -507,10 +507,45 @@ def _solve_em(
             h = predicted_ranges(values, rec, anchors, n_kf)
             r_los = rec["z"] - h - bias_values(values)[a_r]
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
+    marginal = None
+    if g_cfg.marginal_covariances:
+        # the final LM round's graph, each range's factors scaled by its share of
+        # information that survives the LOS/NLOS ambiguity (`observed_information_share`)
+        marginal = gtsam.NonlinearFactorGraph(static_graph(False))
+        if with_bias:
+            _cap_anchor_bias_sigma(marginal, n_anchor, g_cfg.range_bias_anchor_sigma)
+        share = np.ones(len(g))
+        if states is not None and st_idx is not None:
+            e_fit = np.array([values.atDouble(k) for k in states.keys])
+            share = observed_information_share(r_los, rec["z"] - h - e_fit[st_idx], g,
+                                               sig_l, mix.sigma_nlos)
+        factors.add_to(marginal, rec["z"], sig_l, (1.0 - g) * share,
+                       mix.sigma_nlos if states is not None else None, g * share)
     return BatchResult(values, g, w, r_los, mix, done, total_it, scale,
                        nlos_first and states is not None,
-                       None if wheel_scale is None else wheel_scale.applied.copy(),
-                       last_graph[0] if last_graph else None)
+                       None if wheel_scale is None else wheel_scale.applied.copy(), marginal)
+
+
+def observed_information_share(
+    r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray, sigma_los: float,
+    sigma_nlos: float,
+) -> np.ndarray:
+    """Per range, the observed information of its two-component likelihood about the
+    predicted range over the information the EM-weighted factors give it, in [0, 1].
+
+    EM's factors carry the complete-data information (1 - g) / sigma_los^2 + g /
+    sigma_nlos^2, as if each range's LOS/NLOS class were known. The information the data
+    hold is smaller by the missing information, the variance of the score over the class
+    (Louis, 1982): g (1 - g) (r_los / sigma_los^2 - r_nlos / sigma_nlos^2)^2. Certain
+    classes (g near 0 or 1) lose nothing; an ambiguous range, whose class the fit could
+    have taken the other way, loses most of its weight in the marginals. Residuals in
+    metres at the solution (`r_nlos` against the range's NLOS state).
+    """
+    s_l = r_los / sigma_los**2
+    s_n = r_nlos / sigma_nlos**2
+    complete = (1.0 - g) / sigma_los**2 + g / sigma_nlos**2
+    missing = g * (1.0 - g) * (s_l - s_n) ** 2
+    return np.clip(1.0 - missing / complete, 0.0, 1.0)
 
 
 def _search_windows(
