@@ -410,11 +410,13 @@ class GraphEstimator:
         except (RuntimeError, IndexError, ValueError):
             return  # not in this smoother (re-anchored): keep the earlier estimate if any
         if self._with_cov and self.method is Method.ISAM2_SMOOTHED:
+            tic = time.perf_counter()
             try:
                 rot = self._kf_pose[k].rotation().matrix()
                 self._kf_cov[k] = covariance.to_map(rot, sm.pose_covariance(k))
             except (RuntimeError, IndexError, ValueError):
                 self._kf_cov.pop(k, None)  # no marginal: the pose goes out as unknown
+            self._cov_latency.append(time.perf_counter() - tic)
 
     def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """isam2: the newest solved keyframe's marginal, carried to each epoch by
@@ -678,7 +680,10 @@ class GraphEstimator:
 
     # ------------------------------------------------------------------ report
     def report(self) -> dict[str, Any]:
-        """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
+        """Outliers and bias per anchor, mixture parameters, update latency, re-anchors.
+
+        `covariance_ms`: time of the pose marginals, per update (isam2: the newest
+        keyframe's), per keyframe (isam2-smoothed) or once (batch: all keyframes)."""
         out: dict[str, Any] = {"method": self.method.value}
         out["standstill_fix_epochs"] = self.init.standstill_epochs
         b = self.builder
