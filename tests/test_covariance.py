@@ -146,7 +146,7 @@ def test_95_percent_ellipse_holds_95_percent_of_the_errors(method: Method) -> No
 @pytest.mark.xfail(reason="warehouse: NLOS ranges of small excess (the simulator's N(0.11, "
                    "0.15) m, slow AR(1)) that EM classifies LOS with confidence bias the "
                    "track by ~0.1 m for tens of seconds; the marginals, conditional on the "
-                   "classes, do not see it (shares 0.25-0.7)")
+                   "classes, do not see it (per-log shares 0.0-0.7)")
 def test_batch_ellipse_under_warehouse_nlos() -> None:
     """test that batch's 95 % ellipse holds in the warehouse (two of four anchors
     blocked for most of the log)"""

@@ -557,14 +557,19 @@ class GraphEstimator:
         return self._interpolate(poses, covs)
 
     def _batch_covariances(self, n: int) -> np.ndarray | None:
-        """Keyframe covariances from the marginals of the final LM graph (its robust
-        factors weighted as at the solution), None when off or singular."""
+        """Keyframe covariances from the marginals of `BatchResult.graph` (the final LM
+        round's factors at the solution, each range's weighted by the information its
+        LOS/NLOS ambiguity leaves) plus, in x, y, the spread of the track over the
+        stretches' LOS/NLOS assignments (`BatchResult.shift_moment`); None when off or
+        singular."""
         res = self._batch
         if not self._with_cov or res is None or res.graph is None:
             return None
         tic = time.perf_counter()
         try:
             covs = covariance.keyframe_marginals(res.graph, res.values, n)
+            if res.shift_moment is not None:  # the LOS/NLOS assignments' spread in x, y
+                covs[:, :2, :2] += res.shift_moment
         except RuntimeError as exc:  # indeterminant system: no covariance, said so
             log.warning("batch: no pose covariance (marginals failed: %s)",
                         str(exc).splitlines()[0] if str(exc) else "error")
