@@ -133,6 +133,9 @@ class GraphEstimator:
         self._kf_cov: dict[int, np.ndarray] = {}
         self._head_cov: tuple[int, np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self._cov_latency: list[float] = []
+        # the lag window's spread in map x, y over its LOS/NLOS assignments (m^2, from the
+        # review's `los_subset_search`), added to the marginals as batch adds its stretches'
+        self._shift_moment = np.zeros((2, 2))
 
     # ------------------------------------------------------------------ input
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -339,6 +342,7 @@ class GraphEstimator:
             g_cur = np.concatenate([rb.g for rb in batches])
             u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
             hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+            self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
             better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                       and bool(np.any(hyp.los != hyp.current)))
             key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
@@ -413,20 +417,24 @@ class GraphEstimator:
             tic = time.perf_counter()
             try:
                 rot = self._kf_pose[k].rotation().matrix()
-                self._kf_cov[k] = covariance.to_map(rot, sm.pose_covariance(k))
+                cov = covariance.to_map(rot, sm.pose_covariance(k))
+                cov[:2, :2] += self._shift_moment
+                self._kf_cov[k] = cov
             except (RuntimeError, IndexError, ValueError):
                 self._kf_cov.pop(k, None)  # no marginal: the pose goes out as unknown
             self._cov_latency.append(time.perf_counter() - tic)
 
     def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
-        """isam2: the newest solved keyframe's marginal, carried to each epoch by
-        `estimate()`; its cost (one marginal per update) is in `report()`."""
+        """isam2: the newest solved keyframe's marginal (plus the window's LOS/NLOS spread
+        in x, y), carried to each epoch by `estimate()`; its cost (one marginal per
+        update) is in `report()`."""
         if not self._with_cov or self.method is not Method.ISAM2:
             return
         tic = time.perf_counter()
         k = b.k
         try:
             cov = covariance.to_map(b.pose.rotation().matrix(), sm.pose_covariance(k))
+            cov[:2, :2] += self._shift_moment
             vel = sm.velocity_covariance(k) if b.has_imu and not b.has_wheel else None
             self._head_cov = (b.time_of(k), np.asarray(b.pose.translation()), cov, vel)
         except (RuntimeError, IndexError, ValueError):
