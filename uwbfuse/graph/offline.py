@@ -604,7 +604,9 @@ def hypothesis_shift_moments(
     assignment explains the stretch about as well (or better) and puts the track elsewhere,
     the model's own posterior over assignments says the position is that much less
     certain (Bayesian model averaging: the mean squared error about the reported track is
-    the conditional covariance plus this moment). Zero where the assignment is clear.
+    the conditional covariance plus this moment). Near zero where the assignment is clear;
+    zero where the search does not run (more than `uwb.SEARCH_MAX_ANCHORS` anchors heard
+    in a stretch, or too few ranges).
     """
     a_r = rec["anchor"].astype(np.int64)
     out = np.zeros((n_kf, 2, 2))
