@@ -63,15 +63,30 @@ def test_rosbag2_listing_a_missing_file(tmp_path: Path) -> None:
     _one_line(e, "gone_0.mcap", "missing")
 
 
-def test_sqlite_rosbag2_rejected(tmp_path: Path) -> None:
-    """test that a sqlite3 rosbag2 directory gets a clear error."""
+def test_unknown_rosbag2_storage_rejected(tmp_path: Path) -> None:
+    """test that a rosbag2 directory of a storage other than mcap/sqlite3 gets a clear error."""
     (tmp_path / "metadata.yaml").write_text(
-        "rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n"
-        "  relative_file_paths:\n  - x_0.db3\n"
+        "rosbag2_bagfile_information:\n  storage_identifier: cdrfile\n"
+        "  relative_file_paths:\n  - x_0.cdr\n"
     )
     with pytest.raises(LogReadError) as e:
         read_log(tmp_path, Config())
-    _one_line(e, "sqlite3", "not supported")
+    _one_line(e, "cdrfile", "not supported")
+
+
+@pytest.mark.parametrize("text", [
+    "rosbag2_bagfile_information: [unclosed\n",
+    "just a string\n",
+    "rosbag2_bagfile_information:\n  relative_file_paths: 7\n",
+    "rosbag2_bagfile_information:\n  compression_mode: message\n  compression_format: lz9\n",
+    "rosbag2_bagfile_information:\n" + "  " + "[" * 5000 + "\n",
+])
+def test_bad_rosbag2_metadata_is_one_line(tmp_path: Path, text: str) -> None:
+    """test that an unparsable or ill-typed metadata.yaml is one line naming the file."""
+    (tmp_path / "metadata.yaml").write_text(text)
+    with pytest.raises(LogReadError) as e:
+        read_log(tmp_path, Config())
+    _one_line(e, "metadata.yaml")
 
 
 def test_empty_log(tmp_path: Path) -> None:

@@ -133,7 +133,7 @@ def test_pose_mcap_reads_back_with_mcap_ros2(tmp_path: Path) -> None:
     with path.open("rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         assert reader.get_header().profile == "ros2"
-        msgs = list(reader.iter_decoded_messages())
+        msgs = list(reader.iter_decoded_messages(topics=[pose_topic("isam2")]))
     assert len(msgs) == 20
     for k, (schema, channel, message, decoded) in enumerate(msgs):
         assert channel.topic == pose_topic("isam2") == "/uwbfuse/isam2/pose"

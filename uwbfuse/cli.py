@@ -10,10 +10,15 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from uwbfuse.errors import UwbfuseError
+
+if TYPE_CHECKING:
+    from uwbfuse.progress import ProgressBar
 
 EXAMPLES = """examples:
   uwbfuse simulate warehouse.mcap --scenario warehouse --duration 120 --seed 1
@@ -27,6 +32,29 @@ METHOD_HELP = "isam2 | isam2-smoothed | batch | ekf | ukf | wls | lkf | imu | od
 SCHEDULER_HELP = "Dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)"
 WORKERS_HELP = "worker processes of the local cluster (default: one per core)"
 DASHBOARD_HELP = "serve and print the Dask dashboard address"
+CONFIG_HELP = "TOML configuration (default: built-in defaults; see `uwbfuse dump-config`)"
+PROGRESS_HELP = ("progress bar on stderr (default: only when stderr is a terminal)")
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help with each option's default, as ArgumentDefaultsHelpFormatter, except where the
+    help already says its default or there is none to say (None, a False flag)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if ("default" in text or action.default in (None, False, argparse.SUPPRESS)
+                or action.required or not action.option_strings):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("uwbfuse")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -45,43 +73,49 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _default_tum_path(log_path: str, method: str) -> Path:
-    stem = Path(log_path.rstrip("/")).name.removesuffix(".mcap")
+    stem = Path(log_path.rstrip("/")).name.removesuffix(".mcap").removesuffix(".db3")
     return Path(f"{stem}.{method}.tum")
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    import numpy as np
+def _progress(args: argparse.Namespace, label: str) -> ProgressBar:
+    """A time-based bar on stderr: on when stderr is a terminal, or as --progress says."""
+    from uwbfuse.progress import ProgressBar
 
+    on = args.progress if args.progress is not None else sys.stderr.isatty()
+    return ProgressBar(label, unit="s of log", enabled=on)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
     from uwbfuse.config import load_config
     from uwbfuse.estimator import Method
     from uwbfuse.pipeline import run_log
+    from uwbfuse.report import run_summary
 
     config = load_config(args.config)
     method = Method(args.method)
     out = Path(args.output) if args.output else _default_tum_path(args.log, method.value)
-    res = run_log(args.log, method, config, tum_out=out, mcap_out=args.mcap_out)
-    lat_ms = res.step_latency_s * 1e3
-    print(
-        f"{method.value}: {len(res.trajectory)} poses -> {out}"
-        + (f" and {args.mcap_out}" if args.mcap_out else "")
-    )
-    print(
-        f"log {res.log_duration_s:.1f} s, read {res.read_wall_s:.2f} s, estimate "
-        f"{res.estimate_wall_s:.2f} s ({res.realtime_factor:.0f}x real time), update p50 "
-        f"{np.median(lat_ms):.2f} ms p99 {np.percentile(lat_ms, 99):.2f} ms"
-    )
-    from uwbfuse.report import format_report
-
+    with _progress(args, method.value) as bar:
+        res = run_log(args.log, method, config, tum_out=out, mcap_out=args.mcap_out,
+                      cov_out=args.cov_out, progress=bar, report_out=args.report)
     for line in res.read_report.lines():
         print(f"read: {line}", file=sys.stderr)
-    for line in format_report(res.report):
+    outputs = {k: str(v) for k, v in (("tum", out), ("mcap", args.mcap_out),
+                                       ("cov", args.cov_out), ("report", args.report)) if v}
+    for line in run_summary(res, outputs):
         print(line)
     return 0
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from uwbfuse.eval.command import evaluate_files
+    from uwbfuse.eval.command import evaluate_files, export_ground_truth
 
+    if args.save_gt:
+        n = export_ground_truth(args.gt, args.save_gt, config_path=args.config)
+        print(f"wrote {args.save_gt}: {n} ground-truth poses (TUM, base frame in map frame)")
+    if args.est is None:
+        if not args.save_gt:
+            raise UwbfuseError("EST.tum is required (unless --save-gt is given)")
+        return 0
     result = evaluate_files(
         args.est, args.gt, config_path=args.config, align=args.align, max_dt=args.max_dt
     )
@@ -115,10 +149,11 @@ def _cmd_dump_config(args: argparse.Namespace) -> int:
 def _cmd_compare(args: argparse.Namespace) -> int:
     from uwbfuse.compare import compare_log
 
-    result = compare_log(
-        args.log, methods=args.methods, config_path=args.config, out_dir=args.out,
-        gt_path=args.gt, align=args.align,
-    )
+    with _progress(args, "compare") as bar:
+        result = compare_log(
+            args.log, methods=args.methods, config_path=args.config, out_dir=args.out,
+            gt_path=args.gt, align=args.align, html=args.html, progress=bar,
+        )
     print(result.markdown(), end="")
     print(f"wrote {len(result.files)} files to {result.out_dir}/")
     return 0 if any(r.status == "ok" for r in result.rows) else 2
@@ -189,58 +224,80 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("simulate", help="write a simulated contract log (MCAP)")
-    s.add_argument("out", metavar="OUT.mcap")
+    s.add_argument("out", metavar="OUT.mcap", help="MCAP log to write")
     s.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
-    s.add_argument("--duration", type=float, default=120.0, help="seconds (default 120)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--duration", type=float, default=120.0, help="log length, s")
+    s.add_argument("--seed", type=int, default=0, help="random seed (same seed, same log)")
     s.set_defaults(func=_cmd_simulate)
 
     r = sub.add_parser("run", help="estimate a trajectory from a log")
     r.add_argument("log", metavar="LOG", help=".mcap file or rosbag2 directory")
     r.add_argument("--method", required=True, help=METHOD_HELP)
-    r.add_argument("--config", metavar="FILE")
-    r.add_argument("-o", "--output", metavar="EST.tum", help="default: <log>.<method>.tum")
-    r.add_argument("--mcap-out", metavar="EST.mcap")
+    r.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    r.add_argument("-o", "--output", metavar="EST.tum",
+                   help="TUM trajectory to write (default: <log>.<method>.tum)")
+    r.add_argument("--mcap-out", metavar="EST.mcap",
+                   help="also write a ROS 2 MCAP: pose, pose with covariance, /tf, anchors")
+    r.add_argument("--cov-out", metavar="FILE.csv",
+                   help="also write each pose's 6x6 covariance (t, then 36 entries row-major)")
+    r.add_argument("--report", metavar="FILE.json",
+                   help="also write the full run diagnostics as JSON")
+    r.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help=PROGRESS_HELP)
     r.set_defaults(func=_cmd_run)
 
     e = sub.add_parser("eval", help="score a TUM trajectory against ground truth")
-    e.add_argument("est", metavar="EST.tum")
-    e.add_argument("--gt", required=True, metavar="GT.tum|LOG")
+    e.add_argument("est", metavar="EST.tum", nargs="?",
+                   help="estimated trajectory (optional with --save-gt)")
+    e.add_argument("--gt", required=True, metavar="GT.tum|LOG",
+                   help="ground truth: a TUM file, or a log with a ground-truth topic")
     e.add_argument("--config", metavar="FILE", help="topics, when --gt is a log")
-    e.add_argument("--align", default="none", choices=["none", "se2", "se3"])
+    e.add_argument("--save-gt", metavar="GT.tum",
+                   help="write the ground truth of --gt as TUM (for evo)")
+    e.add_argument("--align", default="none", choices=["none", "se2", "se3"],
+                   help="align the estimate to the ground truth first (for GT in another frame)")
     e.add_argument("--max-dt", type=float, default=0.02, help="association tolerance, s")
     e.add_argument("--json", metavar="FILE", help="also write the metrics as JSON")
     e.set_defaults(func=_cmd_eval)
 
     c = sub.add_parser("compare", help="run several methods on one log: table and plots")
-    c.add_argument("log", metavar="LOG")
-    c.add_argument("--methods", default="isam2,batch,ekf,ukf,wls,imu,odom")
-    c.add_argument("--config", metavar="FILE")
-    c.add_argument("--out", default="compare_out", metavar="DIR")
+    c.add_argument("log", metavar="LOG", help=".mcap file or rosbag2 directory")
+    c.add_argument("--methods", default="isam2,batch,ekf,ukf,wls,imu,odom",
+                   help="comma-separated methods to run")
+    c.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    c.add_argument("--out", default="compare_out", metavar="DIR",
+                   help="folder for the table, trajectories and plots")
     c.add_argument("--gt", metavar="GT.tum", help="ground truth when the log has none")
     c.add_argument("--align", default="none", choices=["none", "se2", "se3"],
                    help="align each estimate to a ground truth in another frame")
+    c.add_argument("--html", action="store_true",
+                   help="also write DIR/report.html: table, plots and config in one file")
+    c.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help=PROGRESS_HELP)
     c.set_defaults(func=_cmd_compare)
 
     m = sub.add_parser("montecarlo", help="repeat simulated runs over seeds")
-    m.add_argument("--scenario", default="warehouse")
-    m.add_argument("--runs", type=int, default=20)
-    m.add_argument("--duration", type=float, default=200.0)
-    m.add_argument("--methods", default="isam2,ekf,imu")
-    m.add_argument("--out", default="montecarlo_out", metavar="DIR")
+    m.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
+    m.add_argument("--runs", type=int, default=20, help="simulated runs (seeds 0..N-1)")
+    m.add_argument("--duration", type=float, default=200.0, help="length of each run, s")
+    m.add_argument("--methods", default="isam2,ekf,imu", help="comma-separated methods to run")
+    m.add_argument("--out", default="montecarlo_out", metavar="DIR",
+                   help="folder for the tables and per-run results")
     m.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
     m.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
     m.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     m.set_defaults(func=_cmd_montecarlo)
 
     b = sub.add_parser("batch", help="run one method over many logs")
-    b.add_argument("logs", nargs="+", metavar="LOG")
+    b.add_argument("logs", nargs="+", metavar="LOG", help=".mcap files or rosbag2 directories")
     b.add_argument("--method", required=True, help=METHOD_HELP)
-    b.add_argument("--config", metavar="FILE")
-    b.add_argument("--out-dir", default="batch_out", metavar="DIR")
+    b.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    b.add_argument("--out-dir", default="batch_out", metavar="DIR",
+                   help="folder for one trajectory per log and the summary table")
     b.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
     b.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
     b.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
@@ -251,14 +308,33 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit the LOS/NLOS range-error model (Qiu 2022 eq. 8-9) for the wls method",
     )
     n.add_argument("log", metavar="LOG", help="calibration log with ground truth")
-    n.add_argument("--config", metavar="FILE")
+    n.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
     n.add_argument("--gt", metavar="GT.tum", help="ground truth, if not in the log")
     n.add_argument("-o", "--output", metavar="OUT.toml", help="default: stdout")
     n.set_defaults(func=_cmd_calibrate_nlos)
 
     d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
     d.set_defaults(func=_cmd_dump_config)
+    for sp in sub.choices.values():
+        sp.formatter_class = _HelpFormatter
     return p
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so it unwinds like Ctrl-C: temporary files are
+    removed on the way out and the exit status is the conventional 128 + 15."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+def _handle_sigterm() -> Any:
+    """Install the SIGTERM handler (main thread only); the previous handler, or None."""
+    try:
+        return signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread (e.g. main() called from a worker)
+        return None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -275,12 +351,19 @@ def main(argv: list[str] | None = None) -> int:
         try:
             Method(args.method)
         except ValueError:
-            parser.error(f"unknown method {args.method!r}; one of: {METHOD_HELP}")
+            from uwbfuse.suggest import did_you_mean
+
+            hint = did_you_mean(args.method, [m.value for m in Method])
+            parser.error(f"unknown method {args.method!r}{hint} (one of: {METHOD_HELP})")
+    previous = _handle_sigterm()
     try:
         return int(args.func(args))
     except UwbfuseError as e:
         print(f"uwbfuse {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print(f"uwbfuse {args.command}: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print(f"uwbfuse {args.command}: interrupted", file=sys.stderr)
         return 130
@@ -290,6 +373,9 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

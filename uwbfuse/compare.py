@@ -20,16 +20,29 @@ import numpy as np
 
 from uwbfuse.config import Config, dump_config, load_config
 from uwbfuse.errors import ConfigError, UwbfuseError
-from uwbfuse.estimator import Method
-from uwbfuse.eval.evaluate import EvalResult, evaluate
+from uwbfuse.estimator import Method, RangeClasses
+from uwbfuse.eval.evaluate import EvalResult, RpeResult, evaluate
 from uwbfuse.io.atomic import write_atomic
-from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
+from uwbfuse.progress import ProgressFn
+from uwbfuse.streams import PoseStream, SensorLog
+from uwbfuse.suggest import did_you_mean
 
 log = logging.getLogger(__name__)
 
 COLUMNS = (
     "method", "status", "ate2d_rmse_m", "ate2d_median_m", "ate2d_max_m", "ate3d_rmse_m",
-    "yaw_rmse_deg", "coverage_pct", "poses", "wall_s", "realtime_factor", "error",
+    "rpe1m_rmse_m", "rpe10m_rmse_m", "yaw_rmse_deg", "coverage_pct", "poses", "wall_s",
+    "realtime_factor", "error",
+)
+RPE_PATHS_M = (1.0, 10.0)
+"""Travelled ground-truth path (m) of the table's RPE columns: local error over a metre,
+drift over a room's length."""
+RPE_NOTE = (
+    "rpe1m / rpe10m: RMSE of the translation error of the relative motion over 1 m / 10 m of "
+    "ground-truth path, every pose as a start (the same numbers as `evo_rpe tum GT EST "
+    "--pose_relation trans_part --delta 1 --delta_unit m --all_pairs --pairs_from_reference "
+    "--t_max_diff 0.05`, delta 10 for rpe10m, t_max_diff half the output period); empty "
+    "when the ground-truth path is too short."
 )
 
 
@@ -44,6 +57,8 @@ class MethodRow:
     wall_s: float = math.nan
     realtime_factor: float = math.nan
     error: str = ""
+    rpe_path: dict[float, RpeResult] = field(default_factory=dict)  # by GT path length, m
+    range_classes: RangeClasses | None = None  # the method's own LOS/NLOS per range
 
     def cells(self) -> dict[str, str]:
         m = self.metrics
@@ -58,6 +73,10 @@ class MethodRow:
             "ate2d_median_m": f(m.ate_2d.median if m else None),
             "ate2d_max_m": f(m.ate_2d.max if m else None),
             "ate3d_rmse_m": f(m.ate_3d.rmse if m else None),
+            **{
+                f"rpe{d:g}m_rmse_m": f(self.rpe_path[d].stats.rmse if d in self.rpe_path else None)
+                for d in RPE_PATHS_M
+            },
             "yaw_rmse_deg": f(m.yaw.rmse if m and m.yaw else None, 180 / math.pi, 2),
             "coverage_pct": f(m.coverage if m else None, 100.0, 1),
             "poses": str(len(self.trajectory)) if self.trajectory is not None else "",
@@ -86,6 +105,10 @@ class CompareResult:
         ]
         return "\n".join([head, sep, *body]) + "\n"
 
+    def notes(self) -> list[str]:
+        """What the table's less obvious columns mean (under the table in table.md)."""
+        return [RPE_NOTE]
+
 
 def parse_methods(methods: str | list[str]) -> list[Method]:
     """'isam2,ekf' -> [Method.ISAM2, Method.EKF]; unknown names are a ConfigError."""
@@ -97,11 +120,20 @@ def parse_methods(methods: str | list[str]) -> list[Method]:
         try:
             out.append(Method(name))
         except ValueError:
-            known = ", ".join(m.value for m in Method)
-            raise ConfigError(f"--methods: unknown method {name!r} (one of: {known})") from None
+            known = [m.value for m in Method]
+            raise ConfigError(f"--methods: unknown method {name!r}"
+                              f"{did_you_mean(name, known)} (one of: {', '.join(known)})"
+                              ) from None
     if not out:
         raise ConfigError("--methods: no method given")
     return out
+
+
+def _named(progress: ProgressFn | None, name: str) -> ProgressFn | None:
+    """`progress` with `name` put before each note."""
+    if progress is None:
+        return None
+    return lambda done, total, note: progress(done, total, f"{name} {note}".strip())
 
 
 def write_text_atomic(path: Path, text: str) -> None:
@@ -111,17 +143,18 @@ def write_text_atomic(path: Path, text: str) -> None:
 
 def run_methods(
     log_data: SensorLog, methods: list[Method], config: Config, max_dt: float,
-    align: str = "none",
+    align: str = "none", progress: ProgressFn | None = None,
 ) -> list[MethodRow]:
     """Run each method on the already-read log and score it against its ground truth
-    (`align`: none | se2 | se3, for ground truth in another frame)."""
+    (`align`: none | se2 | se3, for ground truth in another frame); `progress` is told
+    each method's seconds of log processed, the note naming the method."""
     from uwbfuse.pipeline import estimate
 
     rows = []
     gt = log_data.ground_truth
     for method in methods:
         try:
-            res = estimate(log_data, method, config)
+            res = estimate(log_data, method, config, _named(progress, method.value))
         except UwbfuseError as e:
             log.warning("%s failed: %s", method.value, e)
             rows.append(MethodRow(method.value, "failed", error=str(e)))
@@ -129,6 +162,7 @@ def run_methods(
         row = MethodRow(
             method.value, "ok", res.trajectory, wall_s=res.estimate_wall_s,
             realtime_factor=res.log_duration_s / max(res.estimate_wall_s, 1e-9),
+            range_classes=res.range_classes,
         )
         if gt is not None and len(gt):
             try:
@@ -136,10 +170,26 @@ def run_methods(
                     res.trajectory, gt, align=align, max_dt=max_dt, est_name=method.value,
                     gt_name="ground truth",
                 )
+                row.rpe_path = _rpe_over_paths(res.trajectory, gt, align, max_dt, row.metrics)
             except UwbfuseError as e:
                 row.status, row.error = "no-eval", str(e)
         rows.append(row)
     return rows
+
+
+def _rpe_over_paths(
+    est: PoseStream, gt: PoseStream, align: str, max_dt: float, metrics: EvalResult
+) -> dict[float, RpeResult]:
+    """RPE over each of RPE_PATHS_M metres of GT path (`evaluate` scores one distance
+    delta per call: the ones `metrics` lacks are evaluated again)."""
+    have = {r.delta: r for r in metrics.rpe if r.unit == "m"}
+    out = {}
+    for delta in RPE_PATHS_M:
+        if delta not in have:
+            again = evaluate(est, gt, align=align, max_dt=max_dt, rpe_dist_m=delta)
+            have[delta] = next(r for r in again.rpe if r.unit == "m")
+        out[delta] = have[delta]
+    return out
 
 
 def compare_log(
@@ -150,12 +200,15 @@ def compare_log(
     max_dt: float | None = None,
     gt_path: str | Path | None = None,
     align: str = "none",
+    html: bool = False,
+    progress: ProgressFn | None = None,
 ) -> CompareResult:
     """Run `methods` on the log, write table, trajectories, plots and config to `out_dir`.
 
     gt_path: ground truth as a TUM file when the log has none on its topic; align: none |
     se2 | se3 when that ground truth is in another frame (plots then show it moved into
-    the map frame by the best method's alignment).
+    the map frame by the best method's alignment). html: also write `report.html`, the
+    table, plots and config in one self-contained file.
     """
     from uwbfuse.io.reader import read_log
     from uwbfuse.io.tum import read_tum, write_tum
@@ -172,7 +225,7 @@ def compare_log(
         log_data.ground_truth = read_tum(gt_path)
     # Estimates come at the output rate; associate within half an output period.
     tol = max_dt if max_dt is not None else 0.5 / config.output.rate
-    rows = run_methods(log_data, method_list, config, tol, align)
+    rows = run_methods(log_data, method_list, config, tol, align, progress)
     plot_log = _gt_in_map_frame(log_data, rows) if align != "none" else log_data
 
     result = CompareResult(str(log_path), rows, out)
@@ -186,18 +239,40 @@ def compare_log(
     writer.writeheader()
     for row in rows:
         writer.writerow(row.cells())
+    notes = "".join(f"\n{n}\n" for n in result.notes())
+    config_text = effective_config_text(config, log_data)
     for name, text in (
         ("table.csv", buf.getvalue()),
-        ("table.md", f"# {log_path}\n\n" + result.markdown()),
-        ("config.toml", dump_config(config)),
+        ("table.md", f"# {log_path}\n\n" + result.markdown() + notes),
+        ("config.toml", config_text),
     ):
         write_text_atomic(out / name, text)
         result.files.append(out / name)
 
     from uwbfuse.plots import plot_comparison
 
-    result.files.extend(plot_comparison(plot_log, rows, config, out))
+    plots = plot_comparison(plot_log, rows, config, out)
+    result.files.extend(plots)
+    if html:
+        from uwbfuse.html_report import write_html_report
+
+        result.files.append(write_html_report(out / "report.html", result, plots, config_text))
     return result
+
+
+def effective_config_text(config: Config, log_data: SensorLog) -> str:
+    """The config the run used, as TOML: `config` with the anchors actually used (the
+    log's `uwb_anchors` metadata when the config has no `[anchors]`)."""
+    anchors = log_data.anchors
+    if anchors is None or not len(anchors):
+        return dump_config(config)
+    used = {aid: (float(p[0]), float(p[1]), float(p[2]))
+            for aid, p in zip(anchors.ids, anchors.positions, strict=True)}
+    text = dump_config(config.model_copy(update={"anchors": used}))
+    if config.anchors:
+        return text
+    return (f"# [anchors] below: the log's 'uwb_anchors' metadata record ({log_data.source})\n"
+            + text)
 
 
 def _gt_in_map_frame(log_data: SensorLog, rows: list[MethodRow]) -> SensorLog:
@@ -220,22 +295,53 @@ def _gt_in_map_frame(log_data: SensorLog, rows: list[MethodRow]) -> SensorLog:
     return replace(log_data, ground_truth=moved)
 
 
-def range_residuals(
-    log_data: SensorLog, reference: PoseStream, config: Config
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class RangeResiduals:
+    """Residuals (measured - predicted, m) of ranges against a reference trajectory: range
+    stamps (N,) int64 ns, anchor index (N,), residual (N,) m, tag x, y (N,2) m, map frame."""
+
+    t_ns: np.ndarray
+    anchor: np.ndarray
+    residual: np.ndarray
+    tag_xy: np.ndarray
+
+    @classmethod
+    def empty(cls) -> RangeResiduals:
+        z = np.zeros(0)
+        return cls(z.astype(np.int64), z.astype(np.int64), z, np.zeros((0, 2)))
+
+    def classified_nlos(self, classes: RangeClasses) -> np.ndarray:
+        """Each residual's class in `classes` (a method's own classification), matched by
+        stamp and anchor: 1 NLOS, 0 LOS, 2 LOS but down-weighted by the robust kernel
+        (weight < 0.999, where `classes` has weights), -1 not classified (a range the method
+        did not use, e.g. before its start). (N,) int8."""
+        out = np.full(len(self.t_ns), -1, dtype=np.int8)
+        for a in np.unique(self.anchor):
+            mine = np.flatnonzero(classes.anchor == a)
+            if len(mine) == 0:
+                continue
+            order = mine[np.argsort(classes.t_ns[mine], kind="stable")]
+            t_cls = classes.t_ns[order]
+            sel = np.flatnonzero(self.anchor == a)
+            k = np.clip(np.searchsorted(t_cls, self.t_ns[sel]), 0, len(t_cls) - 1)
+            hit = t_cls[k] == self.t_ns[sel]
+            j = order[k[hit]]
+            out[sel[hit]] = np.where(classes.downweighted[j], 2, classes.nlos[j])
+        return out
+
+
+def range_residuals(log_data: SensorLog, reference: PoseStream, config: Config) -> RangeResiduals:
     """Residuals (measured - predicted) of every range against a reference trajectory.
 
     The tag position at each range stamp is the reference position interpolated linearly
-    plus the lever arm `tag_in_base` rotated by the nearest reference orientation.
-    Returns (t_s, anchor index, residual m, tag xy (N,2)); ranges outside the reference
-    span are left out.
+    plus the lever arm `tag_in_base` rotated by the nearest reference orientation. Ranges
+    outside the reference span are left out.
     """
     from scipy.spatial.transform import Rotation
 
     r = log_data.ranges
     if r is None or log_data.anchors is None or len(reference) < 2:
-        z = np.zeros(0)
-        return z, z.astype(int), z, np.zeros((0, 2))
+        return RangeResiduals.empty()
     inside = (r.t_ns >= reference.t_ns[0]) & (r.t_ns <= reference.t_ns[-1])
     t = r.t_ns[inside]
     tref = reference.t_ns
@@ -248,4 +354,4 @@ def range_residuals(
         pos = pos + lever
     anchor = r.anchor[inside]
     pred = np.linalg.norm(pos - log_data.anchors.positions[anchor], axis=1)
-    return t / NS_PER_S, anchor, r.range[inside] - pred, pos[:, :2]
+    return RangeResiduals(t, anchor, r.range[inside] - pred, pos[:, :2])

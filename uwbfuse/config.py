@@ -149,6 +149,18 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
+    motion_accel_density: float = Field(
+        1.0, gt=0, allow_inf_nan=False,
+        description="logs with neither IMU nor wheels: white-noise acceleration of the "
+        "constant-velocity motion prior between keyframes, m/s^2/sqrt(Hz) (1: a walker or "
+        "pushed trolley changes its speed by about 1 m/s within a second)"
+    )
+    motion_turn_density: float = Field(
+        0.5, gt=0, allow_inf_nan=False,
+        description="logs with neither IMU nor wheels: white-noise turn rate of that prior, "
+        "rad/s/sqrt(Hz) (yaw only matters through the tag's lever arm; roll and pitch are "
+        "held level)"
+    )
     imu_noise_inflation: float | Literal["auto"] = Field(
         "auto", description="factor on the IMU noise densities and bias random walks in "
         "the preintegration: room for the unmodelled errors of consumer MEMS (scale, "
@@ -232,6 +244,16 @@ class GraphConfig(_Section):
     )
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
+    )
+    range_model: Literal["auto", "mixture", "robust", "robust, common scale"] = Field(
+        "auto", description="range error model. mixture = LOS/NLOS mixture with "
+        "per-anchor NLOS excess states (EM); robust = Huber around per-anchor offsets, the "
+        "LOS sigma from the residuals (1.4826 MAD); robust, common scale = the same with "
+        "one range scale for all anchors (batch, where scales are estimated); auto: batch "
+        "fits each without a held-out eighth of the log's 2 s stretches and fits the one "
+        "that predicts those ranges best (log score) to the whole log; the online graph "
+        "scores each new range under both before using it (prequential) and weights the "
+        "ranges to come by the better model so far"
     )
     lm_max_iterations: int = Field(
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"
@@ -332,6 +354,18 @@ def _is_union_tag(part: object) -> bool:
     return isinstance(part, str) and ("[" in part or part in {"bool", "int", "float", "str"})
 
 
+def _known_keys(loc: tuple[Any, ...]) -> list[str]:
+    """The keys allowed inside the table at `loc` (sections at the top level)."""
+    model: type[BaseModel] = Config
+    for part in loc:
+        f = model.model_fields.get(str(part))
+        ann = None if f is None else f.annotation
+        if not (isinstance(ann, type) and issubclass(ann, BaseModel)):
+            return []
+        model = ann
+    return list(model.model_fields)
+
+
 def _format_validation_error(source: str, err: ValidationError) -> str:
     errors = err.errors()
     first = errors[0]
@@ -346,7 +380,11 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
         msg = " or ".join(e["msg"] for e in same)
     key = ".".join(str(p) for p in loc)
     if first["type"] == "extra_forbidden":
-        return f"{source}: unknown config key '{key}'"
+        from uwbfuse.suggest import did_you_mean
+
+        what = "section" if len(loc) == 1 else "key"
+        return (f"{source}: unknown config {what} '{key}'"
+                f"{did_you_mean(str(loc[-1]), _known_keys(loc[:-1]))}")
     return f"{source}: bad value for '{key}': {msg}"
 
 

@@ -14,6 +14,7 @@ Poses are the base frame in the map frame (anchor frame, z up); quaternions (x, 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any, Protocol
@@ -53,6 +54,38 @@ class PoseEstimate:
     position: np.ndarray
     quat_xyzw: np.ndarray
     covariance: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RangeClasses:
+    """An estimator's own LOS/NLOS classification of the ranges it used: stamps (N,) int64
+    ns, anchor index (N,), P(NLOS) (N,) in [0, 1]; a range counts as NLOS where
+    P(NLOS) > 0.5 (as the graph's report counts them). `weight` (N,), where known, is the
+    robust kernel's weight of the LOS part (1 = full; below 0.999 the report counts the
+    range as down-weighted). Optional: estimators without a per-range classification have
+    no `range_classes` method (or return None)."""
+
+    t_ns: np.ndarray
+    anchor: np.ndarray
+    p_nlos: np.ndarray
+    weight: np.ndarray | None = None
+
+    @property
+    def nlos(self) -> np.ndarray:
+        return self.p_nlos > 0.5
+
+    @property
+    def downweighted(self) -> np.ndarray:
+        """LOS ranges whose weight is below 0.999 (all False without weights)."""
+        if self.weight is None:
+            return np.zeros(len(self.p_nlos), dtype=bool)
+        return ~self.nlos & (self.weight < 0.999)
+
+
+def range_classes_of(estimator: object) -> RangeClasses | None:
+    """`estimator.range_classes()` where it has one, else None."""
+    get = getattr(estimator, "range_classes", None)
+    return get() if callable(get) else None
 
 
 class Estimator(Protocol):
@@ -181,6 +214,9 @@ class WithFallback:
     def finish(self) -> PoseStream | None:
         return self.primary.finish()
 
+    def range_classes(self) -> RangeClasses | None:
+        return range_classes_of(self.primary)
+
     def report(self) -> dict[str, Any]:
         out = dict(self.primary.report())
         out["provisional_epochs"] = self.fallback_epochs
@@ -197,6 +233,7 @@ class StreamingResult:
     step_latency_s: np.ndarray
     wall_s: float
     report: dict[str, Any] = field(default_factory=dict)
+    range_classes: RangeClasses | None = None
 
 
 def output_epochs(log: SensorLog, rate_hz: float) -> np.ndarray:
@@ -229,11 +266,16 @@ def _poses_to_stream(poses: list[PoseEstimate]) -> PoseStream:
     )
 
 
-def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> StreamingResult:
+def run_streaming(
+    estimator: Estimator, log: SensorLog, epochs: np.ndarray,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> StreamingResult:
     """Feed `log` to `estimator` epoch by epoch; collect the causal pose at every epoch.
 
     For each epoch t_k the data with stamps in (t_{k-1}, t_k] is added stream by stream,
-    then `step(t_k)` is called and timed (the per-update latency).
+    then `step(t_k)` is called and timed (the per-update latency). `progress(done, total,
+    note)` is told the whole seconds of log processed, out of the log's span plus one for
+    `finish()` (it limits its own redraw rate).
     """
     streams = []
     if log.imu is not None and len(log.imu):
@@ -252,6 +294,7 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
     starts = [0] * len(streams)
     poses: list[PoseEstimate] = []
     latency = np.empty(len(epochs))
+    span_s = int((epochs[-1] - epochs[0]) // NS_PER_S) if len(epochs) else 0
     wall0 = time.perf_counter()
     for k, t in enumerate(epochs):
         for i, (add, cols, ends) in enumerate(streams):
@@ -262,6 +305,8 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
         tic = time.perf_counter()
         estimator.step(int(t))
         latency[k] = time.perf_counter() - tic
+        if progress is not None:
+            progress(int((t - epochs[0]) // NS_PER_S), span_s + 1, "")
         est = estimator.estimate()
         if est is not None:
             if est.t_ns != t:
@@ -270,6 +315,11 @@ def run_streaming(estimator: Estimator, log: SensorLog, epochs: np.ndarray) -> S
                     f"{est.t_ns} ns at epoch {int(t)} ns (must be the step time)"
                 )
             poses.append(est)
+    if progress is not None:
+        progress(span_s, span_s + 1, "finishing")
     final = estimator.finish()
     wall = time.perf_counter() - wall0
-    return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report())
+    if progress is not None:
+        progress(span_s + 1, span_s + 1, "")
+    return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report(),
+                           range_classes_of(estimator))

@@ -89,8 +89,11 @@ def parse_methods(methods: str | Sequence[str | Method]) -> tuple[Method, ...]:
         try:
             m = Method(name)
         except ValueError:
-            choices = ", ".join(x.value for x in Method)
-            raise FleetError(f"unknown method {name!r} in --methods; one of: {choices}") from None
+            from uwbfuse.suggest import did_you_mean
+
+            known = [x.value for x in Method]
+            raise FleetError(f"unknown method {name!r} in --methods{did_you_mean(name, known)} "
+                             f"(one of: {', '.join(known)})") from None
         if m not in out:
             out.append(m)
     if not out:

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.errors import AnchorMapError, EstimatorError
-from uwbfuse.estimator import Method, WithFallback, output_epochs, run_streaming
+from uwbfuse.errors import AnchorMapError, EstimatorError, TrajectoryFileError
+from uwbfuse.estimator import Method, RangeClasses, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
+from uwbfuse.progress import ProgressFn
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
@@ -40,6 +41,7 @@ class RunResult:
     log_duration_s: float
     report: dict[str, Any] = field(default_factory=dict)
     read_report: ReadReport = field(default_factory=ReadReport)
+    range_classes: RangeClasses | None = None  # the estimator's own LOS/NLOS per range
 
     @property
     def realtime_factor(self) -> float:
@@ -120,8 +122,11 @@ def _splice_covariance(causal: PoseStream, head: np.ndarray,
     return np.concatenate([part(causal, head), part(final, slice(None))])
 
 
-def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
-    """Run `method` on an already-read log (ground truth is never passed on)."""
+def estimate(
+    log: SensorLog, method: Method, config: Config, progress: ProgressFn | None = None
+) -> RunResult:
+    """Run `method` on an already-read log (ground truth is never passed on); `progress`
+    is told the seconds of log processed (see `run_streaming`)."""
     streams = check_inputs(log, method, config)
     sensors_only = SensorLog(
         imu=log.imu, wheel=log.wheel, ranges=log.ranges, anchors=log.anchors,
@@ -134,7 +139,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
         fallback = make_estimator(Method.WLS, config, log.anchors, streams)
         estimator = WithFallback(estimator, fallback)
     epochs = output_epochs(sensors_only, config.output.rate)
-    res = run_streaming(estimator, sensors_only, epochs)
+    res = run_streaming(estimator, sensors_only, epochs, progress)
     smoothed = method in (Method.ISAM2_SMOOTHED, Method.BATCH)
     if smoothed and res.final is None and len(res.causal) == 0:
         raise EstimatorError(_never_initialised(log, method))
@@ -173,6 +178,7 @@ def estimate(log: SensorLog, method: Method, config: Config) -> RunResult:
         log_duration_s=(t1 - t0) / NS_PER_S,
         report=res.report,
         read_report=log.report,
+        range_classes=res.range_classes,
     )
 
 
@@ -182,20 +188,42 @@ def run_log(
     config: Config,
     tum_out: str | Path | None = None,
     mcap_out: str | Path | None = None,
+    cov_out: str | Path | None = None,
+    progress: ProgressFn | None = None,
+    report_out: str | Path | None = None,
 ) -> RunResult:
-    """Read the log at `path`, run `method`, write the TUM (and MCAP) trajectory."""
+    """Read the log at `path`, run `method`, write the TUM (and MCAP, covariance CSV, JSON
+    run report) outputs.
+
+    The output paths are checked before the log is read, and the outputs are written all
+    or none: a failure (or an interrupt) at any step leaves no output file behind.
+    """
+    from uwbfuse.io.atomic import all_or_none, check_output_paths
     from uwbfuse.io.reader import read_log
     from uwbfuse.io.tum import write_tum
 
+    outputs = {"-o": tum_out, "--mcap-out": mcap_out, "--cov-out": cov_out,
+               "--report": report_out}
+    check_output_paths(outputs, TrajectoryFileError)
     tic = time.perf_counter()
     sensor_log = read_log(path, config)
     read_wall = time.perf_counter() - tic
-    result = estimate(sensor_log, method, config)
+    result = estimate(sensor_log, method, config, progress)
     result.read_wall_s = read_wall
-    if tum_out is not None:
-        write_tum(tum_out, result.trajectory)
-    if mcap_out is not None:
-        from uwbfuse.io.pose_mcap import write_pose_mcap
+    with all_or_none():
+        if tum_out is not None:
+            write_tum(tum_out, result.trajectory)
+        if mcap_out is not None:
+            from uwbfuse.io.pose_mcap import write_pose_mcap
 
-        write_pose_mcap(mcap_out, result.trajectory, method.value)
+            write_pose_mcap(mcap_out, result.trajectory, method.value, sensor_log.anchors)
+        if cov_out is not None:
+            from uwbfuse.io.cov_csv import write_cov_csv
+
+            write_cov_csv(cov_out, result.trajectory)
+        if report_out is not None:
+            from uwbfuse.report import run_report, write_report_json
+
+            written = {k: str(v) for k, v in outputs.items() if v is not None}
+            write_report_json(report_out, run_report(result, str(path), written))
     return result

@@ -1,5 +1,5 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""One small progress bar for the command line, over a known number of jobs.
+"""One small progress bar for the command line, over a known number of jobs (or seconds).
 
 Library functions take a `ProgressFn` callback (`progress(done, total, note)`) and never
 write to the terminal themselves; the CLI passes a `ProgressBar`, which draws on stderr:
@@ -9,6 +9,7 @@ always the last) when stderr is a file or a pipe, as in CI logs. No dependency.
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -38,8 +39,11 @@ class ProgressBar:
         width: int = 24,
         min_interval_s: float = 2.0,
         enabled: bool = True,
+        unit: str = "",
     ) -> None:
         self.label = label
+        self.unit = unit
+        self._last_note = ""
         self.stream = stream if stream is not None else sys.stderr
         self.width = width
         self.min_interval_s = min_interval_s
@@ -47,6 +51,7 @@ class ProgressBar:
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._start = time.monotonic()
         self._first_done: int | None = None
+        self._prev_done = 0
         self._last_draw = -float("inf")
         self._drawn_inline = False
 
@@ -56,6 +61,7 @@ class ProgressBar:
         filled = min(self.width, round(frac * self.width))
         elapsed = time.monotonic() - self._start
         text = f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {done}/{total}"
+        text += f" {self.unit}" if self.unit else ""
         text += f" {_format_duration(elapsed)}"
         first = self._first_done if self._first_done is not None else done
         if 0 < done - first and done < total:
@@ -69,16 +75,21 @@ class ProgressBar:
     def __call__(self, done: int, total: int, note: str = "") -> None:
         if not self.enabled:
             return
-        if self._first_done is None:
+        if self._first_done is None or done < self._prev_done:  # a new pass (next method)
             self._first_done = done
+            self._start = time.monotonic()
+        self._prev_done = done
         now = time.monotonic()
         last = done >= total
-        if not last and now - self._last_draw < (0.1 if self._tty else self.min_interval_s):
+        new_note = self._tty and note != self._last_note  # e.g. "finishing": redraw in place
+        if (not last and not new_note
+                and now - self._last_draw < (0.1 if self._tty else self.min_interval_s)):
             return
         self._last_draw = now
+        self._last_note = note
         line = self.render(done, total, note)
         if self._tty:
-            cols = 120
+            cols = shutil.get_terminal_size((120, 24)).columns
             self.stream.write("\r" + line[: cols - 1].ljust(cols - 1))
             self._drawn_inline = not last
             if last:

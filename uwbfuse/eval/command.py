@@ -13,9 +13,9 @@ from uwbfuse.streams import PoseStream
 
 
 def is_log_path(path: str | Path) -> bool:
-    """True for a LOG argument (an .mcap file or a rosbag2 directory), False for TUM."""
+    """True for a LOG argument (an .mcap or .db3 file or a rosbag2 directory), False for TUM."""
     p = Path(path)
-    return p.is_dir() or p.suffix.lower() == ".mcap"
+    return p.is_dir() or p.suffix.lower() in (".mcap", ".db3")
 
 
 def read_ground_truth(gt: str | Path, config: Config | None = None) -> PoseStream:
@@ -57,3 +57,15 @@ def evaluate_files(
     return evaluate(
         est, truth, align=align, max_dt=max_dt, est_name=str(est_path), gt_name=gt_name
     )
+
+
+def export_ground_truth(
+    gt: str | Path, out: str | Path, *, config_path: str | Path | None = None
+) -> int:
+    """Write the ground truth of `gt` (a LOG's ground-truth topic, or a TUM file) to the TUM
+    file `out` (base frame in the map frame), for evo and other tools; the number of poses."""
+    from uwbfuse.io.tum import write_tum
+
+    truth = read_ground_truth(gt, load_config(config_path))
+    write_tum(out, truth)
+    return len(truth)

@@ -31,10 +31,12 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.uwb import (
+    LOG_OUTLIER,
     MIN_WEIGHT,
     SIGMA_LOS_MIN,
     NlosModel,
     hmm_filter,
+    huber_log_density,
     jump_log_likelihoods,
     los_bias_key,
     nlos_state_factors,
@@ -73,10 +75,10 @@ MAX_SCALE = 0.2  # bound on a range scale error
 # (misclassified NLOS ranges inflated the RMS: factory read 0.042-0.047 for a true 0.026)
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
-# without IMU or wheels: the keyframe-to-keyframe random walk's std per second of interval,
-# rad/s and m/s (an indoor vehicle or walker turns and moves no faster than this)
-RANDOM_WALK_ROT = 1.0
-RANDOM_WALK_TRANS = 2.0
+PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
+# ranges before the online prequential scores start (the robust sigma needs them) and, as
+# many again, before they may switch the model
+MIN_PREQUENTIAL_RANGES = 100
 
 
 @dataclass
@@ -260,8 +262,11 @@ class GraphBuilder:
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
-        self.has_imu = "imu" in streams
         self.has_wheel = "wheel" in streams
+        # neither IMU nor wheels: a constant-velocity prior carried by a virtual IMU (the
+        # IMU factor path with V and B keys; `imu.motion_prior_params`)
+        self.cv_motion = "imu" not in streams and not self.has_wheel
+        self.has_imu = "imu" in streams or self.cv_motion
         self.planar = self.g.planar == "on" or (self.g.planar == "auto" and self.has_wheel)
         self.period_ns = round(NS_PER_S / self.g.keyframe_rate)
         self.t0 = int(start.t_ns)
@@ -288,12 +293,16 @@ class GraphBuilder:
         self.e_created: set[tuple[int, int]] = set()  # NLOS states in the current smoother
         self.review = True  # delayed re-classification of ranges (online)
         self.z0 = planar_height(anchors, float(start.position[2]))
-        self.pim_params = (
-            imu_mod.preintegration_params(config.imu, config.extrinsics,
-                                          imu_inflation(self.g.imu_noise_inflation,
-                                                        self.has_wheel))
-            if self.has_imu else None
-        )
+        if self.cv_motion:
+            self.pim_params: gtsam.PreintegrationCombinedParams | None = (
+                imu_mod.motion_prior_params(self.g.motion_accel_density,
+                                            self.g.motion_turn_density, config.imu.gravity))
+        elif self.has_imu:
+            self.pim_params = imu_mod.preintegration_params(
+                config.imu, config.extrinsics,
+                imu_inflation(self.g.imu_noise_inflation, self.has_wheel))
+        else:
+            self.pim_params = None
         # current estimate of the newest keyframe (updated by the smoother)
         self.pose = gtsam.Pose3(gtsam.Rot3(np.asarray(start.R_map_base, dtype=np.float64)),
                                 np.asarray(start.position, dtype=np.float64))
@@ -334,6 +343,13 @@ class GraphBuilder:
         self._jump_r = np.zeros(m)  # per anchor: last range residual (m) and its stamp
         self._jump_t = np.full(m, np.iinfo(np.int64).min // 2, dtype=np.int64)
         self._predicted_window = ResidualWindow()
+        # online choice of the range model by prequential score: the log predictive density
+        # (nats) of each new range under the mixture and under the robust model, summed
+        self.prequential = np.zeros(2)
+        self.prequential_n = 0
+        self.robust_online = False  # new ranges weighted as the robust model, no NLOS states
+        self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
+        self._abs_i = 0
 
     # ---------------------------------------------------------------- data
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
@@ -395,6 +411,10 @@ class GraphBuilder:
             dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
             rel = se2_between(dd[0][None, :], dd[1:])
             return [se2_to_pose3(r) for r in rel]
+        if self.cv_motion:  # constant velocity (map frame) carried into the base frame
+            step = pose_a.rotation().unrotate(np.asarray(vel_a, np.float64))
+            dts = (np.asarray(t_b, np.int64) - t_a).astype(np.float64) / NS_PER_S
+            return [gtsam.Pose3(gtsam.Rot3(), step * d) for d in dts.tolist()]
         if self.has_imu and self.pim_params is not None and len(self.imu):
             out = []
             nav = gtsam.NavState(pose_a, vel_a)
@@ -435,23 +455,21 @@ class GraphBuilder:
     def motion_noise(self, t_a: int, t_b: int) -> np.ndarray:
         """Pose3 tangent covariance (rot, trans) of the motion from t_a to t_b as `delta`
         predicts it: the wheel track's propagated noise (the wheel factor's), else the
-        IMU's white noise over the interval (rotation sigma_g^2 tau, translation
-        sigma_a^2 tau^3 / 3; the velocity's own uncertainty is the caller's), else the
-        random walk of the keyframe chain."""
+        (real or constant-velocity virtual) IMU's white noise over the interval (rotation
+        sigma_g^2 tau, translation sigma_a^2 tau^3 / 3; the velocity's own uncertainty is
+        the caller's)."""
         tau = max(t_b - t_a, 0) / NS_PER_S
-        per_kf = tau * self.g.keyframe_rate  # keyframe intervals covered
         if self.has_wheel and len(self.wheel):
             oop = self.wheel_records.out_of_plane
             cov = planar_covariance6(self.wheel.covariance(t_a, t_b, self.cfg.wheel), oop)
-            cov[[0, 1, 5], [0, 1, 5]] *= per_kf  # out-of-plane sigmas are per keyframe
+            # out-of-plane sigmas are per keyframe interval
+            cov[[0, 1, 5], [0, 1, 5]] *= tau * self.g.keyframe_rate
             return cov
-        if self.has_imu and self.pim_params is not None:
+        if self.pim_params is not None:
             sg = float(self.pim_params.getGyroscopeCovariance()[0, 0])
             sa = float(self.pim_params.getAccelerometerCovariance()[0, 0])
             return np.diag([sg * tau] * 3 + [sa * tau**3 / 3.0] * 3)
-        dt = 1.0 / self.g.keyframe_rate
-        return np.diag([RANDOM_WALK_ROT**2 * dt * dt * per_kf] * 3
-                       + [RANDOM_WALK_TRANS**2 * dt * dt * per_kf] * 3)
+        return np.eye(6) * 1e-12  # no motion model: the prediction is the keyframe
 
     # ---------------------------------------------------------------- factors
     def _planar_prior(self, k: int, pose: gtsam.Pose3) -> gtsam.NonlinearFactor:
@@ -490,11 +508,13 @@ class GraphBuilder:
                             "velocity sigma 1 m/s", speed)
                 self.vel = np.zeros(3)
                 v_s = 1.0
+            elif self.cv_motion:  # no sensor tells the start velocity: walking pace
+                v_s = 1.0
             else:
                 v_s = 0.1 if speed < 0.05 else 0.5
             inc.graph.add(gtsam.PriorFactorVector(V(0), self.vel, diagonal([v_s] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
-                B(0), self.bias, diagonal(imu_mod.bias_prior_sigmas(self.cfg.imu))))
+                B(0), self.bias, diagonal(self.bias_prior_sigmas())))
             inc.values.insert(V(0), self.vel)
             inc.values.insert(B(0), self.bias)
             keys += [V(0), B(0)]
@@ -536,6 +556,12 @@ class GraphBuilder:
                         C, D(a), 0.0,
                         gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_anchor_sigma)))
         return inc
+
+    def bias_prior_sigmas(self) -> np.ndarray:
+        """IMU bias prior sigmas (m/s^2, rad/s): the IMU's, or the virtual IMU's tight ones."""
+        if self.cv_motion:
+            return np.full(6, imu_mod.VIRTUAL_BIAS_SIGMA)
+        return imu_mod.bias_prior_sigmas(self.cfg.imu)
 
     def _stamp_globals(self, inc: Increment, s: float) -> None:
         """Anchors and range biases never leave the smoother's window."""
@@ -587,9 +613,12 @@ class GraphBuilder:
                 new_pose = gtsam.Pose3(new_pose.rotation(), xyz)
             else:
                 new_pose = wp
-        if not self.has_imu and not self.has_wheel:
-            s = pose_sigmas((RANDOM_WALK_ROT * dt,) * 3, (RANDOM_WALK_TRANS * dt,) * 3)
-            inc.graph.add(gtsam.BetweenFactorPose3(X(ka), X(k), gtsam.Pose3(), diagonal(s)))
+        if self.cv_motion:  # the virtual IMU assumes a level base: hold roll and pitch
+            ypr = new_pose.rotation().ypr()
+            level = gtsam.Pose3(gtsam.Rot3.Ypr(float(ypr[0]), 0.0, 0.0), new_pose.translation())
+            big = 1e3
+            inc.graph.add(gtsam.PriorFactorPose3(X(k), level, diagonal(pose_sigmas(
+                (self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big), (big, big, big)))))
         if self.planar:
             inc.graph.add(self._planar_prior(k, new_pose))
         inc.values.insert(X(k), new_pose)
@@ -631,17 +660,21 @@ class GraphBuilder:
                     ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
                     None if jump is None else jump[sel])
             self._online_m_step(r_los, r_nlos, g)
+            self._prequential_choice(r_los, ll_l, ll_n, prior)
+            if self.robust_online:
+                g[:] = 0.0
         else:
             e_pred = np.zeros(len(t))
         slots = [self.range_factors(inc, ka, int(a[j]), float(z[j]), tag_kf[j], int(seg[j]),
                                     float(g[j]), float(e_pred[j])) for j in range(len(t))]
-        sig_l = mix.sigma_los if self.nlos else self.cfg.uwb.sigma
+        sig_l = self.robust_sigma() if self.robust_online else (
+            mix.sigma_los if self.nlos else self.cfg.uwb.sigma)
         uwb = self.cfg.uwb
         w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
         if self.with_scale:
             self._update_scale(a, r_los, pred, (1.0 - g) * w)
         rec = self.records
-        if self.nlos and self.review:
+        if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
                                             len(rec.k), t_ns=t), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
@@ -674,7 +707,10 @@ class GraphBuilder:
         mix = self.mixture
         uwb = self.cfg.uwb
         t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
-        sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
+        if self.robust_online:
+            sig_l = self.smoothed_sigma_los or self.robust_sigma()
+        else:
+            sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         out = []
         w_l = 1.0 - g
         if w_l > MIN_WEIGHT:
@@ -759,6 +795,51 @@ class GraphBuilder:
         s = robust_los_sigma(rr[:, 0], gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.mixture.sigma_los = s
+
+    def robust_sigma(self) -> float:
+        """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual|."""
+        seen = self._abs_r[np.isfinite(self._abs_r)]
+        if len(seen) == 0:
+            return self.cfg.uwb.sigma
+        return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
+
+    def prequential_verdict(self) -> str | None:
+        """"mixture" or "robust" once the prequential scores could decide (auto), else
+        None (too few ranges, or a configured model)."""
+        if self.g.range_model != "auto" or not self.nlos:
+            return None
+        if self.prequential_n < 2 * MIN_PREQUENTIAL_RANGES:
+            return None
+        return "robust" if self.robust_online else "mixture"
+
+    def _prequential_choice(
+        self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
+    ) -> None:
+        """Score the new ranges (before they are used) under both range models and weight
+        the ranges to come by the better one so far: the online counterpart of batch's
+        held-out choice (`graph.range_model`). Scored once the robust sigma has
+        MIN_PREQUENTIAL_RANGES residuals behind it."""
+        if self.g.range_model == "mixture":
+            return
+        n = len(r_los)
+        idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
+        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES or self.g.range_model != "auto":
+            p = np.clip(prior, 1e-3, 1.0 - 1e-3)
+            lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
+            lp_rob = np.logaddexp(huber_log_density(r_los, self.robust_sigma(),
+                                                    self.cfg.uwb.kernel_threshold), LOG_OUTLIER)
+            self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+        self._abs_r[idx] = np.abs(r_los)
+        self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
+        self.prequential_n += n
+        robust = (self.g.range_model != "auto" or (
+            self.prequential_n >= 2 * MIN_PREQUENTIAL_RANGES
+            and self.prequential[1] > self.prequential[0]))
+        if robust != self.robust_online:
+            log.info("online range model: %s (prequential score mixture %.1f, robust %.1f "
+                     "nats over %d ranges)", "robust" if robust else "mixture",
+                     self.prequential[0], self.prequential[1], self.prequential_n)
+        self.robust_online = robust
 
     def add_smoothed_residuals(self, r_los: np.ndarray, g: np.ndarray) -> None:
         """Update `smoothed_sigma_los` from LOS residuals (m) at the smoothed estimate and

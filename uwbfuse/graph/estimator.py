@@ -47,10 +47,10 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import Estimator, Method, PoseEstimate
+from uwbfuse.estimator import Estimator, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
-from uwbfuse.graph.imu import ImuBuffer, bias_prior_sigmas
+from uwbfuse.graph.imu import ImuBuffer
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
@@ -473,7 +473,7 @@ class GraphEstimator:
         if b.has_imu:
             inc.graph.add(gtsam.PriorFactorVector(V(k), b.vel, diagonal([0.5] * 3)))
             inc.graph.add(gtsam.PriorFactorConstantBias(
-                B(k), b.bias, diagonal(bias_prior_sigmas(self.cfg.imu))))
+                B(k), b.bias, diagonal(b.bias_prior_sigmas())))
             inc.values.insert(V(k), b.vel)
             inc.values.insert(B(k), b.bias)
             inc.stamps[V(k)] = s
@@ -565,19 +565,18 @@ class GraphEstimator:
         return self._interpolate(poses, covs)
 
     def _batch_covariances(self, n: int) -> np.ndarray | None:
-        """Keyframe covariances from the marginals of `BatchResult.graph` (the final LM
-        round's factors at the solution, each range's weighted by the information its
-        LOS/NLOS ambiguity leaves) plus, in x, y, the spread of the track over the
-        stretches' LOS/NLOS assignments (`BatchResult.shift_moment`); None when off or
-        singular."""
+        """Keyframe covariances from the marginals of `BatchResult.marginals`' graph (the
+        final LM round's factors at the solution, each range's weighted by the information
+        its LOS/NLOS ambiguity leaves) plus, in x, y, the spread of the track over the
+        stretches' LOS/NLOS assignments; None when off or singular."""
         res = self._batch
-        if not self._with_cov or res is None or res.graph is None:
+        if not self._with_cov or res is None or res.marginals is None:
             return None
         tic = time.perf_counter()
         try:
-            covs = covariance.keyframe_marginals(res.graph, res.values, n)
-            if res.shift_moment is not None:  # the LOS/NLOS assignments' spread in x, y
-                covs[:, :2, :2] += res.shift_moment
+            graph, moment = res.marginals()
+            covs = covariance.keyframe_marginals(graph, res.values, n)
+            covs[:, :2, :2] += moment  # the LOS/NLOS assignments' spread in x, y
         except RuntimeError as exc:  # indeterminant system: no covariance, said so
             log.warning("batch: no pose covariance (marginals failed: %s)",
                         str(exc).splitlines()[0] if str(exc) else "error")
@@ -606,7 +605,8 @@ class GraphEstimator:
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
                                     has_wheel=b.has_wheel, with_scale=b.with_scale,
-                                    wheel=b.wheel_records)
+                                    wheel=b.wheel_records,
+                                    online_verdict=b.prequential_verdict())
 
     def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude).
@@ -692,6 +692,18 @@ class GraphEstimator:
                           else np.concatenate([cov, traj.covariance]))
 
     # ------------------------------------------------------------------ report
+    def range_classes(self) -> RangeClasses | None:
+        """P(NLOS) of every range in the graph as the report counts it (batch: the final EM
+        responsibilities; online: the lag-window review's); None without the NLOS model."""
+        b = self.builder
+        if b is None or not b.nlos:
+            return None
+        rec = b.records.arrays()
+        g, w = ((self._batch.nlos_prob, self._batch.weight) if self._batch is not None
+                else (rec["g_online"], rec["w_online"]))
+        return RangeClasses(rec["t_ns"], rec["anchor"], np.asarray(g, dtype=np.float64),
+                            np.asarray(w, dtype=np.float64))
+
     def report(self) -> dict[str, Any]:
         """Outliers and bias per anchor, mixture parameters, update latency, re-anchors.
 
@@ -734,6 +746,8 @@ class GraphEstimator:
             out["batch"] = {"em_rounds": self._batch.rounds,
                             "lm_iterations": self._batch.lm_iterations,
                             "em_start": "nlos-first" if self._batch.nlos_first else "online",
+                            "range_model": self._batch.range_model,
+                            "heldout_log_score": self._batch.heldout_score,
                             "wall_s": self._batch_wall}
             if self._batch.wheel_scale is not None:
                 out["batch"]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
@@ -759,6 +773,11 @@ class GraphEstimator:
                                "sigma_nlos": mix.sigma_nlos, "p_nlos": mix.p_nlos}
         if self._batch is None:  # online: sigma_los is the one-step prediction's
             out["nlos_mixture"]["sigma_los_smoothed"] = b.smoothed_sigma_los
+        out["online_range_model"] = {
+            "model": "robust" if b.robust_online else "mixture",
+            "prequential_log_score": {"mixture": float(b.prequential[0]),
+                                      "robust": float(b.prequential[1])},
+            "ranges": b.prequential_n}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out

@@ -44,6 +44,34 @@ def preintegration_params(
     return p
 
 
+# Bias of the constant-velocity prior's virtual IMU: held at zero (it has no sensor), with a
+# random walk (m/s^3/sqrt(Hz), rad/s^2/sqrt(Hz)) small against any motion yet large enough
+# to keep the 0.1 s factors well conditioned, and a prior std (m/s^2, rad/s) to match.
+VIRTUAL_BIAS_RANDOM_WALK = 1e-4
+VIRTUAL_BIAS_SIGMA = 1e-3
+
+
+def motion_prior_params(
+    accel_density: float, turn_density: float, gravity: float
+) -> gtsam.PreintegrationCombinedParams:
+    """Constant-velocity (white-noise acceleration) motion prior as preintegration params.
+
+    For a log with neither IMU nor wheels: a virtual IMU that always reads "no acceleration,
+    no turn" (specific force +g on z, zero rate) whose noise densities are the motion's own
+    acceleration (m/s^2/sqrt(Hz)) and turn rate (rad/s/sqrt(Hz)) spectral densities, so a
+    `CombinedImuFactor` between keyframes is GTSAM's native white-noise-acceleration prior
+    on position and velocity.
+    """
+    p = gtsam.PreintegrationCombinedParams.MakeSharedU(gravity)
+    i3 = np.eye(3)
+    p.setAccelerometerCovariance(i3 * accel_density**2)
+    p.setGyroscopeCovariance(i3 * turn_density**2)
+    p.setIntegrationCovariance(i3 * 1e-6)
+    p.setBiasAccCovariance(i3 * VIRTUAL_BIAS_RANDOM_WALK**2)
+    p.setBiasOmegaCovariance(i3 * VIRTUAL_BIAS_RANDOM_WALK**2)
+    return p
+
+
 def bias_prior_sigmas(cfg: ImuConfig) -> np.ndarray:
     """Sigmas of an IMU-bias prior: accelerometer (m/s^2) then gyroscope (rad/s)."""
     return np.array([cfg.accel_bias_sigma] * 3 + [cfg.gyro_bias_sigma] * 3)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -30,9 +31,12 @@ from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
+    LOG_OUTLIER,
     MIN_WEIGHT,
+    SIGMA_LOS_MIN,
     NlosModel,
     hmm_smooth,
+    huber_log_density,
     los_bias_key,
     los_subset_search,
     nlos_state_factors,
@@ -105,12 +109,16 @@ class BatchResult:
     scale: np.ndarray
     nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
     wheel_scale: np.ndarray | None = None  # (v, omega) odometry scale factors, None: no wheels
-    # the graph whose marginals are the poses' covariance (`marginal_graph`), None when
+    # NLOS excess states (anchor index, segment, value m) of the mixture model, else None
+    nlos_states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    range_model: str = "mixture"  # the range error model fitted: mixture or robust
+    # mean held-out log score (nats per range) of each candidate, when `auto` chose
+    heldout_score: dict[str, float] | None = None
+    # builds, on demand (only the fit that is kept needs it), the graph whose marginals are
+    # the poses' covariance and the LOS/NLOS assignments' spread of each keyframe's
+    # position in map x, y (n_kf,2,2, m^2, `hypothesis_shift_moments`); None when
     # `graph.marginal_covariances` is off
-    graph: gtsam.NonlinearFactorGraph | None = None
-    # per keyframe, the LOS/NLOS assignments' spread of its position in map x, y (n_kf,2,2),
-    # m^2 (`hypothesis_shift_moments`), None without the marginals or the NLOS model
-    shift_moment: np.ndarray | None = None
+    marginals: Callable[[], tuple[gtsam.NonlinearFactorGraph, np.ndarray]] | None = None
 
 
 # Wheel odometry scale calibration (batch). Encoders read the speed and the yaw rate with a
@@ -312,8 +320,14 @@ def solve(
     has_wheel: bool = True,
     with_scale: bool = False,
     wheel: WheelRecords | None = None,
+    online_verdict: str | None = None,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
+
+    `graph.range_model = "auto"`: the online pass's prequential verdict (`online_verdict`,
+    "mixture" or "robust", None when it saw too few ranges) picks the family; held-out
+    cross-validation (`_cross_validated`) decides what it leaves open (the family on a
+    short log, the robust model's common or per-anchor scale).
 
     EM from the online trajectory classifies each range against a trajectory that, where
     most anchors are blocked at once, has already been pulled towards the NLOS ranges: they
@@ -329,12 +343,237 @@ def solve(
     online, 0.24 m NLOS-first).
     """
     share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
-    wheel_scale = (_WheelScale(wheel) if wheel is not None and wheel.k
-                   and cfg.graph.estimate_wheel_scale else None)
-    return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns,
-                     scale0 if with_scale else None,
-                     nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE,
-                     wheel_scale=wheel_scale)
+    problem = _Problem(cfg, base_graph, anchors, n_kf, t0_ns, wheel,
+                       nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
+    scale0 = scale0 if with_scale else None
+    if not cfg.graph.nlos:  # no NLOS modelling asked for: the configured kernel and sigma
+        return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
+                         nlos_first=False, wheel_scale=problem.wheel_scale())
+    candidates = {m.name: m for m in RANGE_MODELS if scale0 is not None or not m.common_scale}
+    if cfg.graph.range_model != "auto":
+        return problem.fit(candidates[cfg.graph.range_model], rec, initial, model, scale0)
+    if online_verdict is not None:
+        candidates = {n: m for n, m in candidates.items() if m.nlos == (online_verdict ==
+                                                                        "mixture")}
+    if len(candidates) == 1:
+        out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
+        out.range_model = next(iter(candidates))
+        return out
+    return _cross_validated(problem, list(candidates.values()), rec, initial, model, scale0)
+
+
+@dataclass(frozen=True)
+class RangeModel:
+    """A candidate range error model of `graph.range_model`."""
+
+    name: str
+    nlos: bool  # the LOS/NLOS mixture (else Huber around the per-anchor offsets)
+    common_scale: bool  # one range scale for every anchor (when scales are estimated)
+
+
+RANGE_MODELS = (
+    RangeModel("mixture", nlos=True, common_scale=False),
+    RangeModel("robust", nlos=False, common_scale=False),
+    # the radios' clock (one scale for all) rather than each anchor's own
+    RangeModel("robust, common scale", nlos=False, common_scale=True),
+)
+
+
+@dataclass
+class _Problem:
+    """What every fit of one batch solve shares: the graph without ranges and the log."""
+
+    cfg: Config
+    base_graph: gtsam.NonlinearFactorGraph
+    anchors: np.ndarray
+    n_kf: int
+    t0_ns: int
+    wheel: WheelRecords | None
+    nlos_first: bool
+
+    def wheel_scale(self) -> _WheelScale | None:
+        """A fresh odometry scale fit (each LM run rebuilds its own wheel factors)."""
+        if self.wheel is None or not self.wheel.k or not self.cfg.graph.estimate_wheel_scale:
+            return None
+        return _WheelScale(self.wheel)
+
+    def fit(self, m: RangeModel, rec: dict[str, np.ndarray], initial: gtsam.Values,
+            mix: NlosModel, scale0: np.ndarray | None) -> BatchResult:
+        """Range model `m` fitted to the ranges `rec` from `initial`."""
+        if m.nlos:
+            return _solve_em(self.cfg, self.base_graph, initial, rec, self.anchors,
+                             self.n_kf, mix, self.t0_ns, scale0,
+                             nlos_first=self.nlos_first, wheel_scale=self.wheel_scale())
+        return _solve_robust(self.cfg, self.base_graph, initial, rec, self.anchors,
+                             self.n_kf, mix, self.t0_ns, scale0, self.wheel_scale,
+                             m.common_scale)
+
+
+def _cross_validated(
+    problem: _Problem, candidates: list[RangeModel], rec: dict[str, np.ndarray],
+    initial: gtsam.Values, model: NlosModel, scale0: np.ndarray | None,
+) -> BatchResult:
+    """`graph.range_model = "auto"`: each candidate fitted without the held-out stretches
+    of a phase (`heldout_mask`), phase after phase until MIN_SCORED_RANGES are held out;
+    the best mean held-out log score wins and is fitted to every range."""
+    cfg = problem.cfg
+    scored: dict[str, list[np.ndarray]] = {m.name: [] for m in candidates}
+    first: dict[str, BatchResult] | None = None
+    for phase in HELDOUT_PHASES:
+        held = heldout_mask(rec["t_ns"], problem.t0_ns, phase)
+        if not np.any(held):
+            continue
+        train, test = _subset(rec, ~held), _subset(rec, held)
+        fits = {m.name: problem.fit(m, train, initial, model, scale0) for m in candidates}
+        for name, f in fits.items():
+            scored[name].append(heldout_log_score(f, train, test, problem.anchors,
+                                                  problem.n_kf, cfg, problem.t0_ns))
+        first = first or fits
+        if sum(len(x) for x in scored[candidates[0].name]) >= MIN_SCORED_RANGES:
+            break
+    n_scored = sum(len(x) for x in scored[candidates[0].name])
+    if first is None or n_scored < MIN_HELDOUT_RANGES:  # too short to rank: the default
+        return problem.fit(candidates[0], rec, initial, model, scale0)
+    scores = {name: float(np.mean(np.concatenate(x))) for name, x in scored.items()}
+    best = next(m for m in candidates if m.name == max(scores, key=lambda n: scores[n]))
+    log.info("batch range model (%d ranges held out): %s -> %s", n_scored,
+             ", ".join(f"{n} {v:.3f}" for n, v in scores.items()), best.name)
+    if best.nlos:  # EM from the online pass again: from the held-out fit it lands elsewhere
+        out = problem.fit(best, rec, initial, model, scale0)
+    else:  # the robust fit converges from its held-out solution
+        f = first[best.name]
+        out = _solve_em(_robust_config(cfg, f.mixture.sigma_los), problem.base_graph,
+                        f.values, rec, problem.anchors, problem.n_kf, f.mixture,
+                        problem.t0_ns, None if scale0 is None else f.scale,
+                        nlos_first=False, wheel_scale=problem.wheel_scale(),
+                        common_scale=best.common_scale)
+        out.mixture.sigma_los = f.mixture.sigma_los
+    out.range_model = best.name
+    out.heldout_score = scores
+    return out
+
+
+# Held-out stretches of `graph.range_model = "auto"`: every HELDOUT_EVERY-th stretch of
+# HELDOUT_BLOCK_S of the log. 2 s holds out a range with its neighbours of the same NLOS
+# episode (segments of about 1 s), so the candidates must predict it from the motion and
+# their calibration, not from its twin a tenth of a second away; odometry bridges 2 s.
+HELDOUT_BLOCK_S = 2.0
+HELDOUT_EVERY = 8  # one stretch in eight per phase: 7/8 of the ranges still fit
+HELDOUT_PHASES = (4, 0, 6, 2, 5, 1, 7, 3)  # phases in the order they are held out
+# held-out ranges that end the cross-validation: their mean log score then has a standard
+# error of about 0.1 nats (per-range spread ~1 nat), below the gaps that decide
+MIN_SCORED_RANGES = 100
+MIN_HELDOUT_RANGES = 20  # fewer held-out ranges than this cannot rank two models
+
+
+def heldout_mask(t_ns: np.ndarray, t0_ns: int, phase: int = HELDOUT_PHASES[0]) -> np.ndarray:
+    """True for the ranges in the held-out stretches of `phase` (the first stretch is never
+    held out: the start needs its ranges)."""
+    block = (np.asarray(t_ns, np.int64) - t0_ns) // round(HELDOUT_BLOCK_S * NS_PER_S)
+    return ((block % HELDOUT_EVERY) == phase) & (block > 0)
+
+
+def _subset(rec: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, np.ndarray]:
+    return {name: v[mask] for name, v in rec.items()}
+
+
+def _robust_config(cfg: Config, sigma: float) -> Config:
+    """`cfg` with the NLOS mixture off and the LOS range sigma `sigma` (m)."""
+    return cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"nlos": False}),
+                                  "uwb": cfg.uwb.model_copy(update={"sigma": sigma})})
+
+
+def _solve_robust(
+    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+    rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int, model: NlosModel,
+    t0_ns: int, scale0: np.ndarray | None, wheel_scale: Callable[[], _WheelScale | None],
+    common_scale: bool = False,
+) -> BatchResult:
+    """Huber LM around per-anchor offsets; then the LOS sigma from the residuals (1.4826
+    MAD) and LM again at that sigma (`wheel_scale`: a factory of fresh `_WheelScale`s)."""
+    first = _solve_em(_robust_config(cfg, cfg.uwb.sigma), base_graph, initial, rec, anchors,
+                      n_kf, model, t0_ns, scale0, nlos_first=False,
+                      wheel_scale=wheel_scale(), common_scale=common_scale)
+    sigma = float(np.clip(1.4826 * np.median(np.abs(first.residual)), SIGMA_LOS_MIN,
+                          MAX_ROBUST_SIGMA))
+    out = _solve_em(_robust_config(cfg, sigma), base_graph, first.values, rec, anchors, n_kf,
+                    model, t0_ns, None if scale0 is None else first.scale, nlos_first=False,
+                    wheel_scale=wheel_scale(), common_scale=common_scale)
+    out.mixture.sigma_los = sigma
+    out.range_model = "robust, common scale" if common_scale else "robust"
+    return out
+
+
+MAX_ROBUST_SIGMA = 1.0  # m: a LOS range sigma beyond this is no UWB radio's
+
+
+def _bias_values(values: gtsam.Values, n_anchor: int) -> np.ndarray:
+    if not values.exists(D(0)):
+        return np.zeros(n_anchor)
+    return np.array([values.atDouble(D(a)) for a in range(n_anchor)])
+
+
+def _nearest_responsibility(
+    train: dict[str, np.ndarray], test: dict[str, np.ndarray], g: np.ndarray
+) -> np.ndarray:
+    """P(NLOS) of each test range: the mean of its anchor's training ranges just before
+    and after it in time (NLOS persists), the anchor's mean where it has only one side."""
+    out = np.full(len(test["z"]), float(np.mean(g)) if len(g) else 0.0)
+    for a in np.unique(test["anchor"]).tolist():
+        tr = np.flatnonzero(train["anchor"] == a)
+        te = np.flatnonzero(test["anchor"] == a)
+        if len(tr) == 0:
+            continue
+        order = np.argsort(train["t_ns"][tr], kind="stable")
+        t_tr, g_tr = train["t_ns"][tr][order], g[tr][order]
+        pos = np.searchsorted(t_tr, test["t_ns"][te])
+        lo = g_tr[np.clip(pos - 1, 0, len(tr) - 1)]
+        hi = g_tr[np.clip(pos, 0, len(tr) - 1)]
+        out[te] = 0.5 * (lo + hi)
+    return out
+
+
+def heldout_log_score(
+    fit: BatchResult, train: dict[str, np.ndarray], test: dict[str, np.ndarray],
+    anchors: np.ndarray, n_kf: int, cfg: Config, t0_ns: int,
+) -> np.ndarray:
+    """Log predictive density (nats) of each held-out range under `fit`: its trajectory
+    (the held-out stretches bridged by the motion factors), range calibration and error
+    model. The mixture predicts a range's NLOS excess from its anchor's nearest NLOS state
+    in time (its uncertainty growing along the Gauss-Markov chain) and its NLOS
+    probability from the neighbouring training ranges; the robust model by its Huber
+    density. Both keep the mixture's gross-outlier floor."""
+    a = test["anchor"].astype(np.int64)
+    h = predicted_ranges(fit.values, test, anchors, n_kf)
+    z = test["z"] / (1.0 + fit.scale[a])
+    r_los = z - h - _bias_values(fit.values, len(anchors))[a]
+    mix = fit.mixture
+    if fit.range_model == "robust" or fit.nlos_states is None:
+        if cfg.uwb.robust_kernel.value == "huber":
+            ll = huber_log_density(r_los, mix.sigma_los, cfg.uwb.kernel_threshold)
+        else:
+            ll = (-0.5 * (r_los / mix.sigma_los) ** 2 - math.log(mix.sigma_los)
+                  - 0.5 * math.log(2.0 * math.pi))
+        return np.logaddexp(ll, LOG_OUTLIER)
+    st_a, st_s, st_v = fit.nlos_states
+    seg_ns = round(mix.segment_s * NS_PER_S)
+    seg = (test["t_ns"] - t0_ns) // seg_ns
+    code = st_a.astype(np.int64) * (1 << 40) + st_s
+    q = a * (1 << 40) + seg
+    pos = np.searchsorted(code, q)
+    lo, hi = np.clip(pos - 1, 0, len(code) - 1), np.clip(pos, 0, len(code) - 1)
+    gap_lo = np.where(st_a[lo] == a, np.abs(st_s[lo] - seg), np.iinfo(np.int64).max)
+    gap_hi = np.where(st_a[hi] == a, np.abs(st_s[hi] - seg), np.iinfo(np.int64).max)
+    near = np.where(gap_lo <= gap_hi, lo, hi)
+    gap = np.minimum(gap_lo, gap_hi)
+    known = gap < np.iinfo(np.int64).max
+    d = _bias_values(fit.values, len(anchors))[a]
+    excess = np.where(known, st_v[near], d + mix.mu_nlos)
+    var = np.where(known, np.minimum(mix.chain_sigma**2 * np.maximum(gap, 1), mix.sigma_slow**2),
+                   mix.sigma_slow**2)
+    ll_l, ll_n = mix.log_likelihoods(r_los, z - h - excess, var)
+    p = np.clip(_nearest_responsibility(train, test, fit.nlos_prob), 1e-3, 1.0 - 1e-3)
+    return np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
 
 
 def _solve_em(
@@ -349,8 +588,10 @@ def _solve_em(
     scale0: np.ndarray | None,
     nlos_first: bool,
     wheel_scale: _WheelScale | None = None,
+    common_scale: bool = False,
 ) -> BatchResult:
-    """One EM + LM run from the online trajectory, or NLOS-first (see `solve`)."""
+    """One EM + LM run from the online trajectory, or NLOS-first (see `solve`);
+    `common_scale`: the range scale (when estimated) is one for every anchor."""
     g_cfg = cfg.graph
     uwb = cfg.uwb
     if wheel_scale is not None:  # its wheel factors are replaced: keep the caller's intact
@@ -485,7 +726,8 @@ def _solve_em(
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
         if with_scale:
-            refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma)
+            refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
+                        common_scale)
             rec["z"] = z_raw / (1.0 + scale[a_r])
             r_los = rec["z"] - h - bias_values(values)[a_r]
         if states is not None:
@@ -494,7 +736,8 @@ def _solve_em(
         values = lm_round(values, g, freeze)
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
-        refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma)
+        refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
+                        common_scale)
         rec["z"] = z_raw / (1.0 + scale[a_r])
     if freeze:
         values = lm_round(values, g, False)
@@ -510,25 +753,38 @@ def _solve_em(
             h = predicted_ranges(values, rec, anchors, n_kf)
             r_los = rec["z"] - h - bias_values(values)[a_r]
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
-    marginal = moment = None
-    if g_cfg.marginal_covariances:
-        # the final LM round's graph, each range's factors scaled by its share of
-        # information that survives the LOS/NLOS ambiguity (`observed_information_share`)
-        marginal = gtsam.NonlinearFactorGraph(static_graph(False))
+
+    def marginals() -> tuple[gtsam.NonlinearFactorGraph, np.ndarray]:
+        """The final LM round's graph, each range's factors scaled by the share of its
+        information that survives the LOS/NLOS ambiguity (`observed_information_share`),
+        and the assignments' spread (`hypothesis_shift_moments`)."""
+        graph = gtsam.NonlinearFactorGraph(static_graph(False))
         if with_bias:
-            _cap_anchor_bias_sigma(marginal, n_anchor, g_cfg.range_bias_anchor_sigma)
+            _cap_anchor_bias_sigma(graph, n_anchor, g_cfg.range_bias_anchor_sigma)
         share = np.ones(len(g))
+        # the robust model has no classes: its every range counts as LOS (g = 0) against
+        # the mixture's NLOS alternative, with the LOS sigma it was fitted with
+        search_mix = copy.copy(mix)
+        search_mix.sigma_los = sig_l
+        moment = hypothesis_shift_moments(values, rec, anchors, n_kf, r_los, g, search_mix)
         if states is not None and st_idx is not None:
-            moment = hypothesis_shift_moments(values, rec, anchors, n_kf, r_los, g, mix)
             e_fit = np.array([values.atDouble(k) for k in states.keys])
             share = observed_information_share(r_los, rec["z"] - h - e_fit[st_idx], g,
                                                sig_l, mix.sigma_nlos)
-        factors.add_to(marginal, rec["z"], sig_l, (1.0 - g) * share,
+        factors.add_to(graph, rec["z"], sig_l, (1.0 - g) * share,
                        mix.sigma_nlos if states is not None else None, g * share)
+        return graph, moment
+
+    nlos_out = None
+    if states is not None:
+        nlos_out = (states.anchor.copy(), states.seg.copy(),
+                    np.array([values.atDouble(k) for k in states.keys]))
     return BatchResult(values, g, w, r_los, mix, done, total_it, scale,
                        nlos_first and states is not None,
-                       None if wheel_scale is None else wheel_scale.applied.copy(), marginal,
-                       moment)
+                       None if wheel_scale is None else wheel_scale.applied.copy(),
+                       nlos_states=nlos_out,
+                       range_model="mixture" if states is not None else "robust",
+                       marginals=marginals if g_cfg.marginal_covariances else None)
 
 
 def observed_information_share(
@@ -630,10 +886,16 @@ def hypothesis_shift_moments(
 
 def refit_scale(
     scale: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray, a: np.ndarray,
-    sigma_los: float, sigma_k: float,
+    sigma_los: float, sigma_k: float, common: bool = False,
 ) -> None:
-    """One Gauss-Newton step per anchor of z / (1 + k) = d + b (in place, prior sigma_k)."""
+    """One Gauss-Newton step per anchor of z / (1 + k) = d + b (in place, prior sigma_k);
+    `common`: one k shared by every anchor (the radios' clock, not the anchors)."""
     lam = (sigma_los / sigma_k) ** 2
+    if common:
+        a = np.zeros_like(a)
+        scale[:] = float(np.mean(scale))
     num = np.bincount(a, weights=w * r * h, minlength=len(scale))
     den = np.bincount(a, weights=w * h * h, minlength=len(scale))
+    if common:
+        num[:], den[:] = num[0], den[0]
     scale[:] = np.clip((1.0 + scale) * (1.0 + num / (den + lam)) - 1.0, -0.2, 0.2)

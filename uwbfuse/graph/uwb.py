@@ -48,7 +48,7 @@ SEARCH_MAX_ANCHORS = 6
 JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
 JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
 # gross-outlier floor of each component's likelihood: 2 % spread over 20 m
-_LOG_OUTLIER = math.log(0.02 / 20.0)
+LOG_OUTLIER = math.log(0.02 / 20.0)
 
 
 @dataclass
@@ -88,7 +88,7 @@ class NlosModel:
         ll_l = -0.5 * (r_los / s_l) ** 2 - math.log(s_l) - _LOG_SQRT_2PI
         s_n = np.sqrt(self.sigma_nlos**2 + np.asarray(var_nlos))
         ll_n = -0.5 * (r_nlos / s_n) ** 2 - np.log(s_n) - _LOG_SQRT_2PI
-        return np.logaddexp(ll_l, _LOG_OUTLIER), np.logaddexp(ll_n, _LOG_OUTLIER)
+        return np.logaddexp(ll_l, LOG_OUTLIER), np.logaddexp(ll_n, LOG_OUTLIER)
 
     def m_step(
         self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray, prior: NlosModel,
@@ -112,6 +112,15 @@ class NlosModel:
         self.p_nlos = float(np.clip(p, 0.02, 0.9))
 
 
+def huber_log_density(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
+    """log of the normalised Huber density (Gaussian core, exponential tails beyond k
+    sigmas) of residuals r (m): the predictive density of the robust range model."""
+    u = np.abs(r) / sigma
+    rho = np.where(u <= k, 0.5 * u * u, k * u - 0.5 * k * k)
+    z = math.sqrt(2.0 * math.pi) * math.erf(k / math.sqrt(2.0)) + 2.0 * math.exp(-0.5 * k * k) / k
+    return -rho - math.log(sigma * z)
+
+
 def jump_log_likelihoods(
     delta: np.ndarray, excess: np.ndarray, model: NlosModel
 ) -> np.ndarray:
@@ -133,7 +142,7 @@ def jump_log_likelihoods(
     m = np.maximum(excess, 0.1)
 
     def ll(x: np.ndarray, s: float) -> np.ndarray:
-        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, _LOG_OUTLIER)
+        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, LOG_OUTLIER)
 
     out = np.empty((len(d), 2, 2))
     out[:, 0, 0] = ll(d, s_stay_l)

@@ -15,7 +15,7 @@ import itertools
 import struct
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import BinaryIO
 
 import numpy as np
@@ -54,6 +54,7 @@ class ChannelDef:
     topic: str
     message_encoding: str
     schema: int  # index into the schema list (ids are index + 1)
+    metadata: dict[str, str] = field(default_factory=dict)  # e.g. offered_qos_profiles
 
 
 def _s(text: str) -> bytes:
@@ -147,7 +148,7 @@ def write_mcap(
     ]
     channel_recs = [
         _record(OP_CHANNEL, struct.pack("<HH", i + 1, c.schema + 1) + _s(c.topic)
-                + _s(c.message_encoding) + _map_ss({}))
+                + _s(c.message_encoding) + _map_ss(c.metadata))
         for i, c in enumerate(channels)
     ]
     for r in schema_recs + channel_recs:

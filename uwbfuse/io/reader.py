@@ -1,11 +1,12 @@
 # SPDX-License-Identifier: BSD-3-Clause
 """Read a LOG (a `.mcap` file or a rosbag2 directory) into a columnar `SensorLog`.
 
-Steps: find the MCAP files (`rosbag2.log_files`), scan each one for raw message bytes
-(`mcap_raw.scan_mcap`: no summary needed, truncation tolerated), decode the role topics
-of `config.topics` (fixed-layout ROS 2 types vectorised by `cdr_fast`, everything else by
-the schema-driven generic decoders), then per stream: stamps, validity filters, sorting by
-stamp and removal of exact duplicates. What was dropped, and why, is counted in
+Steps: scan the log's storage files for raw message bytes (`rosbag2.scan_log`: MCAP by
+`mcap_raw.scan_mcap`, no summary needed, truncation tolerated; sqlite3 through `rosbags`),
+decode the role topics of `config.topics` (fixed-layout ROS 2 types vectorised by
+`cdr_fast`, everything else by the schema-driven generic decoders), then per stream:
+stamps, validity filters, sorting by stamp and removal of exact duplicates. What was
+dropped, and why, is counted in
 `SensorLog.report`; `report.messages` counts the messages of every topic in the log.
 
 Time: `header.stamp` in integer ns; the MCAP log time only where a message has no header
@@ -29,8 +30,8 @@ from uwbfuse.errors import LogReadError
 from uwbfuse.io import cdr_fast, msgdefs, ros2msg
 from uwbfuse.io.decoders import DecoderUnavailable, generic_decoder
 from uwbfuse.io.fields import MissingField, anchor_key, get_path, has_path, is_valid, stamp_ns
-from uwbfuse.io.mcap_raw import MessageRefs, RawChannel, ScanResult, scan_mcap
-from uwbfuse.io.rosbag2 import log_files, read_bytes
+from uwbfuse.io.mcap_raw import MessageRefs, RawChannel, ScanResult
+from uwbfuse.io.rosbag2 import scan_log
 from uwbfuse.io.writer import ANCHORS_METADATA
 from uwbfuse.streams import (
     AnchorMap,
@@ -570,7 +571,6 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
     configured topics is present.
     """
     source = str(path)
-    files = log_files(path)
     by_topic = _role_topics(config)
     sinks: list[_ChannelSink] = []
 
@@ -583,11 +583,9 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
         return sink
 
     report = ReadReport()
-    scans = []
-    for f in files:
-        scan = scan_mcap(f, want, read_bytes(f))
-        scans.append(scan)
-        prefix = f"{f.name}: " if len(files) > 1 else ""
+    scans = scan_log(path, want)
+    for scan in scans:
+        prefix = f"{scan.path.name}: " if len(scans) > 1 else ""
         report.warnings.extend(prefix + w for w in scan.warnings)
         if scan.lost_messages_unknown_channel:
             report.skip("message on an undefined channel", scan.lost_messages_unknown_channel)

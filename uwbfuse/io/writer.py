@@ -26,7 +26,7 @@ from uwbfuse.errors import LogWriteError
 from uwbfuse.io import cdr_fast, msgdefs
 from uwbfuse.io.atomic import atomic_open
 from uwbfuse.io.mcap_write import ChannelDef, SchemaDef, write_mcap
-from uwbfuse.streams import SensorLog
+from uwbfuse.streams import AnchorMap, SensorLog
 
 ANCHORS_METADATA = "uwb_anchors"
 LIBRARY = "uwbfuse"
@@ -34,14 +34,17 @@ LIBRARY = "uwbfuse"
 _COMPRESSION = ("zstd", "lz4", "none")
 
 
-def anchors_metadata(log: SensorLog) -> dict[str, str]:
+def anchors_record(anchors: AnchorMap) -> dict[str, str]:
     """The `uwb_anchors` record: anchor id -> JSON array "[x, y, z]" (metres, map frame)."""
-    if log.anchors is None:
-        return {}
     return {
         aid: json.dumps([float(c) for c in pos])
-        for aid, pos in zip(log.anchors.ids, log.anchors.positions, strict=True)
+        for aid, pos in zip(anchors.ids, anchors.positions, strict=True)
     }
+
+
+def anchors_metadata(log: SensorLog) -> dict[str, str]:
+    """The `uwb_anchors` record of `log` (empty without an anchor map)."""
+    return {} if log.anchors is None else anchors_record(log.anchors)
 
 
 def _encode_streams(
