@@ -103,10 +103,10 @@ def test_plaza2_isam2_holds_a_standstill_fix_until_the_start() -> None:
     assert res.report["held_provisional_epochs"] > 0
     assert evaluate(tr, gt, max_dt=0.1).ate_2d.rmse < 0.65
     # the radios' errors are no NLOS mixture: the new ranges' prequential scores say so
+    # (measured z +35), while the online graph keeps the mixture under `auto`
     online = res.report["online_range_model"]
-    assert online["model"] == "robust"
-    score = online["prequential_log_score"]
-    assert score["robust"] > score["mixture"]
+    assert online["verdict"] == "robust" and online["z"] > 10
+    assert online["model"] == "mixture"
 
 
 def _start(range_scale: float) -> InitialState:

@@ -1,12 +1,12 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""The graph's own start helpers (`uwbfuse.graph.start`): the standstill fix."""
+"""The graph's own start helpers (`uwbfuse.positioning.start`): the standstill fix."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from uwbfuse.graph.start import solve_static
+from uwbfuse.positioning.start import solve_static
 from uwbfuse.streams import AnchorMap
 
 ANCHORS = AnchorMap(ids=("a", "b", "c", "d"),
@@ -81,8 +81,8 @@ def test_start_solves_back_off_on_a_log_that_never_starts(monkeypatch) -> None:
 
     from uwbfuse.config import Config
     from uwbfuse.estimator import Method
-    from uwbfuse.graph import sparse_start
     from uwbfuse.pipeline import estimate
+    from uwbfuse.positioning import sparse_start
     from uwbfuse.sim.simulator import simulate
 
     log = simulate("room", 120.0, 0, streams=("wheel", "uwb"))

@@ -40,6 +40,13 @@ REQUIRED_STREAMS: dict[Method, frozenset[str]] = {
     Method.BATCH: frozenset({"uwb"}),
 }
 
+# Streams with which a ranging method also runs on a log without UWB ranges (no anchor map
+# needed): the Kalman filters then fuse IMU and wheels from the map origin, heading zero.
+WITHOUT_RANGES: dict[Method, frozenset[str]] = {
+    Method.EKF: frozenset({"imu", "wheel"}),
+    Method.UKF: frozenset({"imu", "wheel"}),
+}
+
 
 def available_methods() -> list[Method]:
     """Methods whose implementation module is importable in this installation."""

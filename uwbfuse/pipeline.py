@@ -18,7 +18,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError, TrajectoryFileError
 from uwbfuse.estimator import Method, RangeClasses, WithFallback, output_epochs, run_streaming
-from uwbfuse.methods import REQUIRED_STREAMS, make_estimator
+from uwbfuse.methods import REQUIRED_STREAMS, WITHOUT_RANGES, make_estimator
 from uwbfuse.progress import ProgressFn
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, ReadReport, SensorLog
 
@@ -65,6 +65,9 @@ def sensor_streams(log: SensorLog) -> frozenset[str]:
 def check_inputs(log: SensorLog, method: Method, config: Config) -> frozenset[str]:
     """Raise a one-line error if `log` lacks what `method` needs; return the streams."""
     streams = sensor_streams(log)
+    alone = WITHOUT_RANGES.get(method)
+    if "uwb" not in streams and alone is not None and alone <= streams:
+        return streams  # IMU + wheels without UWB: no anchor map needed
     if method.uses_ranges and log.anchors is None:
         raise AnchorMapError(
             f"{log.source}: no anchor map: give an [anchors] table in the config or a "

@@ -26,6 +26,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.filters.adaptive_noise import RangeNoise
 from uwbfuse.filters.models import (
     F64,
     NS_PER_S,
@@ -33,7 +34,6 @@ from uwbfuse.filters.models import (
     imu_to_base,
     quat_xyzw_from_matrix,
 )
-from uwbfuse.positioning.initialisation import RANGE_SCALE_MIN_ERROR
 from uwbfuse.streams import AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -75,10 +75,10 @@ def default_initialiser(
     config: Config, anchors: AnchorMap, streams: frozenset[str]
 ) -> InitialiserLike:
     """The project's initialiser (UWB multilateration + IMU levelling, and the start from
-    sparse ranges that the graph uses too: `graph.sparse_start`), imported lazily."""
+    sparse ranges that the graph uses too: `positioning.sparse_start`), imported lazily."""
     try:
-        from uwbfuse.graph.sparse_start import SparseStartInitialiser
         from uwbfuse.positioning.initialisation import Initialiser
+        from uwbfuse.positioning.sparse_start import SparseStartInitialiser
     except ImportError as exc:  # pragma: no cover - only while the module is missing
         raise EstimatorError(f"filter initialiser unavailable: {exc}") from exc
     # the filters take the wheel-track start only where multilateration has no fix at all
@@ -155,23 +155,22 @@ class StreamingFilter:
         streams: frozenset[str],
         initialiser: InitialiserLike | None = None,
     ) -> None:
-        if "uwb" not in streams:
-            raise EstimatorError("Kalman baselines need UWB ranges")
+        self.has_imu = "imu" in streams
+        self.has_wheel = "wheel" in streams
+        self.has_uwb = "uwb" in streams
+        if not self.has_uwb and not (self.has_imu and self.has_wheel):
+            raise EstimatorError("Kalman baselines need UWB ranges, or an IMU and wheels")
         self.config = config
         self.anchors = anchors
         self.anchor_pos: F64 = np.asarray(anchors.positions, dtype=np.float64)
-        self.has_imu = "imu" in streams
-        self.has_wheel = "wheel" in streams
         if not self.has_imu and not self.has_wheel:
             raise EstimatorError(
                 "Kalman baselines need an IMU or wheel odometry besides UWB ranges"
             )
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
-        self.sigma_r2 = config.uwb.sigma**2
-        self._range_scale = 1.0  # common range scale solved by the initialiser (wheeled logs)
+        self.range_noise = RangeNoise(config, len(anchors))
         self.gating = config.ekf.gating
-        self.gate1 = gate_threshold(config.ekf.gate_probability, 1)
         self.planar = self.has_wheel and config.graph.planar != "off"
         self.initialiser = initialiser or default_initialiser(config, anchors, streams)
         self._init_pending = True
@@ -269,15 +268,13 @@ class StreamingFilter:
             self.t_init = int(state.t_ns)
             self._discard_until(self.t_init)
             # Ranges as the start solve saw them: its common scale (radios that read a few
-            # % long, e.g. Plaza) and at least its residual spread as range noise.
-            # A scale within 2 % of 1 is the solve's noise, not the radios (DW1000 clocks
-            # drift by ppm): applying it would bias long ranges by centimetres. (The graph
-            # also asks for 0.5 m of effect, `range_scale_applies`; here that cost Labyrinth
-            # 0.122 -> 0.174 m: the filters have no range-offset states, and there a 2-5 %
-            # scale at 1.9 m stands in for the radios' 0.1 m offset.)
-            scale = float(state.range_scale)
-            self._range_scale = scale if abs(scale - 1.0) > RANGE_SCALE_MIN_ERROR else 1.0
-            self.sigma_r2 = max(self.sigma_r2, float(state.range_sigma) ** 2)
+            # % long, e.g. Plaza; refined from the innovations from then on, so a scale that
+            # is only the solve's noise does not stay), and at least its residual spread as
+            # the LOS spread's prior.
+            # (the height is held by the planar constraint, or fixed in the wheel-driven filter)
+            self.range_noise.set_start_scale(
+                float(state.range_scale), refine=self.planar or not self.has_imu)
+            self.range_noise.widen_los_prior(float(state.range_sigma))
             self._start(state)
             self.t_cur = self.t_init
         assert self.t_cur is not None
@@ -285,8 +282,8 @@ class StreamingFilter:
         if t_ns <= self.t_cur:
             return
         rt, ra, rr, wt, wv = self._measurements(t_ns)
-        if self._range_scale != 1.0:
-            rr = rr / self._range_scale
+        if self.range_noise.scale != 1.0:
+            rr = rr / self.range_noise.scale
         if t_ns - self.t_cur <= MAX_WINDOW_NS:  # one window (the 10 Hz output steps)
             used = self._window(t_ns, rt, ra, rr, wt, wv)
             if len(rt):
@@ -333,7 +330,7 @@ class StreamingFilter:
         if self.t_cur is None:
             return None
         pos, quat = self._pose()
-        return PoseEstimate(self.t_cur, pos, quat)
+        return PoseEstimate(self.t_cur, pos, quat, self.pose_covariance())
 
     def finish(self) -> PoseStream | None:
         """Filters have no smoothed output: the causal poses are final."""
@@ -350,14 +347,17 @@ class StreamingFilter:
             "gate_resets": self.gate_resets,
             "repeated_ranges": self.repeated,
             "stale_samples": self.stale,
+            "range_noise": self.range_noise.report(),
         }
 
     # -- to implement -------------------------------------------------------------------
 
     @property
     def mode(self) -> str:
-        """Sensor combination: 'imu+wheel', 'imu', 'wheel'."""
-        return "+".join(n for n, on in (("imu", self.has_imu), ("wheel", self.has_wheel)) if on)
+        """Sensor combination besides UWB: 'imu+wheel', 'imu', 'wheel' ('imu+wheel, no uwb'
+        on a log without ranges)."""
+        out = "+".join(n for n, on in (("imu", self.has_imu), ("wheel", self.has_wheel)) if on)
+        return out if self.has_uwb else f"{out}, no uwb"
 
     def _start(self, state: InitialStateLike) -> None:
         raise NotImplementedError
@@ -378,6 +378,10 @@ class StreamingFilter:
         raise NotImplementedError
 
     def _pose(self) -> tuple[F64, F64]:
+        raise NotImplementedError
+
+    def pose_covariance(self) -> F64:
+        """(6,6) covariance of `_pose` in ROS order, map axes (`models.pose_covariance`)."""
         raise NotImplementedError
 
     # -- helpers for subclasses ---------------------------------------------------------
@@ -524,8 +528,9 @@ class StreamingFilter:
                 self._range_carry.append(rng)
             rng = _Pending(self._range_carry).take()
             self._range_carry = []
-        self._wheel_meas = wheel
-        self._ranges = rng
+        # (a step that ended before consuming them, e.g. the start step, keeps them)
+        self._wheel_meas = _Pending([c for c in (self._wheel_meas, wheel) if c is not None]).take()
+        self._ranges = _Pending([c for c in (self._ranges, rng) if c is not None]).take()
 
     def _measurements(
         self, t_ns: int
@@ -628,8 +633,12 @@ def build_filter(
     initialiser: InitialiserLike | None = None,
 ) -> StreamingFilter:
     """The filter variant for the sensor combination: IMU-driven when the log has an IMU,
-    the planar wheel-driven one otherwise. Raises EstimatorError without anchors."""
-    if anchors is None or len(anchors) == 0:
+    the planar wheel-driven one otherwise. Raises EstimatorError without anchors, except on
+    a log without UWB that has an IMU and wheels (the filter then starts at the map origin,
+    heading zero, and fuses the two)."""
+    if "uwb" not in streams and {"imu", "wheel"} <= streams:
+        anchors = AnchorMap((), np.zeros((0, 3)))
+    elif anchors is None or len(anchors) == 0:
         raise EstimatorError(f"{method.value} needs an anchor map")
     cls = imu_cls if "imu" in streams else planar_cls
     return cls(config, anchors, streams, initialiser)

@@ -8,10 +8,12 @@ sensors (position by multilateration, heading from the first motion) and the dea
 track is anchored there once (`AnchoredDeadReckoning`); after that no range is used, so
 the error growth is that of the wheels or the IMU alone, as in the papers' IMU-only curves.
 
-odom: planar unicycle. Wheel sample k is the mean (v, omega) over (t_{k-1}, t_k], so the
-  first sample only fixes the start time. Each interval is integrated as a constant-twist
-  arc: yaw at the interval midpoint for the direction of travel (midpoint yaw), chord
-  length v dt sinc(omega dt / 2) (exact for a constant twist, so a circle closes).
+odom: planar unicycle (its pose covariance grows from zero at the start with the `[wheel]`
+  per-sample noise; anchored runs and `imu` report none). Wheel sample k is the mean (v,
+  omega) over (t_{k-1}, t_k], so the first sample only fixes the start time. Each interval
+  is integrated as a constant-twist arc: yaw at the interval midpoint for the direction of
+  travel (midpoint yaw), chord length v dt sinc(omega dt / 2) (exact for a constant twist,
+  so a circle closes).
 
 imu: strapdown mechanisation of the IMU point in the map frame, 3-D (or planar, see
   below). Gyro (bias removed) is averaged over each interval (trapezoid) and its rotation
@@ -50,6 +52,7 @@ from scipy.spatial.transform import Rotation
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate
+from uwbfuse.filters.models import pose_covariance, unicycle_transition
 from uwbfuse.streams import F64, NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -144,10 +147,14 @@ class _Base:
 class OdomDeadReckoning(_Base):
     """Planar wheel dead reckoning of the base frame: (x, y, yaw) in the map frame."""
 
-    def __init__(self) -> None:
+    def __init__(self, sigma_v: float = 0.05, sigma_omega: float = 0.05) -> None:
         super().__init__()
         self._t_last: int | None = None
         self._state = np.zeros(3)  # x, y (m), yaw (rad) at _t_last
+        # covariance of _state, grown from zero at the start by the per-sample wheel noise
+        # (sigma_v m/s, sigma_omega rad/s: `[wheel]`)
+        self._P = np.zeros((3, 3))
+        self._sigma = (sigma_v, sigma_omega)
         self._twist = np.zeros(2)  # v (m/s), omega (rad/s) of the last interval
         self._n = 0
         self._path = 0.0
@@ -171,8 +178,11 @@ class OdomDeadReckoning(_Base):
         yaw_end = self._state[2] + np.cumsum(dth)
         yaw_mid = yaw_end - 0.5 * dth
         chord = v * dt * np.sinc(dth / (2.0 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
-        x = self._state[0] + np.cumsum(chord * np.cos(yaw_mid))
-        y = self._state[1] + np.cumsum(chord * np.sin(yaw_mid))
+        dx, dy = chord * np.cos(yaw_mid), chord * np.sin(yaw_mid)
+        phi, q = unicycle_transition(dx, dy, v, dt, yaw_mid, *self._sigma)
+        self._P = phi @ self._P @ phi.T + q
+        x = self._state[0] + np.cumsum(dx)
+        y = self._state[1] + np.cumsum(dy)
         self._state = np.array([x[-1], y[-1], yaw_end[-1]])
         self._twist = np.array([v[-1], w[-1]])
         self._t_last = int(t[-1])
@@ -191,7 +201,8 @@ class OdomDeadReckoning(_Base):
         x += chord * math.cos(yaw + 0.5 * dth)
         y += chord * math.sin(yaw + 0.5 * dth)
         self._pose = PoseEstimate(
-            int(t_ns), np.array([x, y, 0.0]), _yaw_quat(np.array(yaw + dth))
+            int(t_ns), np.array([x, y, 0.0]), _yaw_quat(np.array(yaw + dth)),
+            pose_covariance(self._P, (0, 1, None, None, None, 2)),
         )
 
     def report(self) -> dict[str, Any]:
@@ -517,7 +528,8 @@ def make(
     map origin with heading zero.
     """
     if method is Method.ODOM:
-        inner: OdomDeadReckoning | ImuDeadReckoning = OdomDeadReckoning()
+        inner: OdomDeadReckoning | ImuDeadReckoning = OdomDeadReckoning(
+            config.wheel.sigma_v, config.wheel.sigma_omega)
     elif method is Method.IMU:
         planar_cfg = config.graph.planar
         planar = planar_cfg == "on" or (planar_cfg == "auto" and "wheel" in streams)

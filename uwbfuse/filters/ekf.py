@@ -9,15 +9,22 @@ widens it to the inputs the graph sees:
   base frame in the map frame (the paper's state has only planar dp, dv). Earth rate and
   transport rate (eq. 13-17) are dropped: they are far below a MEMS gyro's noise indoors.
 - Each UWB range is one scalar measurement of |p + R t_tag - anchor| (tag lever arm from
-  `extrinsics.tag_in_base`), not the paper's squared-range difference; chi-square gated
-  (`[ekf] gate_probability`, `gating`), counted per anchor in `report()`.
+  `extrinsics.tag_in_base`), not the paper's squared-range difference. The ranges of a
+  window are applied one after another (sequential scalar updates, after the wheel and
+  planar rows), each robustly weighted on its own innovation: LOS/NLOS mixture posterior
+  as the measurement, chi-square gate (`[ekf] gate_probability`, `gating`), the mixture
+  fitted to the log's innovations (`adaptive_noise.RangeNoise`); counted per anchor in
+  `report()`.
 - Wheel odometry is a base-frame velocity measurement: forward speed v with
   `wheel.sigma_v`, and zero lateral and vertical speed with `wheel.sigma_lateral`
   (non-holonomic). With wheels, the vehicle is on the floor: a soft planar constraint holds
   the base height and tilt (`graph.planar`, `planar_sigma_z`, `planar_sigma_tilt`, as the
-  graph uses them).
+  graph uses them). Those configured sigmas are priors: the variances follow the log's
+  innovations (`adaptive_noise.InnovationVariance`).
 - Without an IMU (UWB + wheels) the process is the planar unicycle driven by the wheels
-  (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D.
+  (state x, y, yaw); without wheels (handheld UWB + IMU) the filter is fully 3-D. Without
+  UWB (IMU + wheels) it starts at the map origin, heading zero, as dead reckoning does.
+- `estimate()` carries the pose covariance from P (ROS order; `pose_covariance`).
 - Covariance updates in Joseph form.
 - Process noise: the `[imu]` densities and bias random walks times `[ekf]
   imu_noise_inflation` (default 30, the graph's figure for logs without wheels): a real
@@ -58,6 +65,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
+from uwbfuse.filters.adaptive_noise import InnovationVariance, sequential_ranges
 from uwbfuse.filters.base import (
     InitialiserLike,
     InitialStateLike,
@@ -80,6 +88,7 @@ from uwbfuse.filters.models import (
     imu_rotation,
     joseph_update,
     mechanise,
+    pose_covariance,
     quat_xyzw_from_matrix,
     quat_xyzw_from_yaw,
     skew,
@@ -154,13 +163,15 @@ class ErrorStateEkf(StreamingFilter):
         # Process noise: the [imu] figures times [ekf] imu_noise_inflation (squared: PSDs).
         self.q_diag = ImuNoise.from_config(config.imu).diag() * config.ekf.imu_noise_inflation**2
         w = config.wheel
-        self.r_wheel_diag = np.array([w.sigma_v**2, w.sigma_lateral**2, w.sigma_lateral**2])
-        self._r_wheel_cache: dict[int, F64] = {}
+        # wheel forward/lateral/vertical speed and planar z/tilt variances: the configured
+        # values as priors, then covariance matching on the innovations
+        self.wheel_noise = InnovationVariance(
+            np.array([w.sigma_v**2, w.sigma_lateral**2, w.sigma_lateral**2]))
         self._h_planar = np.zeros((3, N_ERR))
         self._h_planar[0, 2] = 1.0
         g = config.graph
-        self.r_planar = np.array([g.planar_sigma_z**2, g.planar_sigma_tilt**2,
-                                  g.planar_sigma_tilt**2])
+        self.planar_noise = InnovationVariance(np.array(
+            [g.planar_sigma_z**2, g.planar_sigma_tilt**2, g.planar_sigma_tilt**2]))
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.R = np.eye(3)
@@ -212,6 +223,7 @@ class ErrorStateEkf(StreamingFilter):
         hs: list[F64] = []
         ys: list[F64] = []
         rv: list[F64] = []
+        noise: list[InnovationVariance] = []
         used = np.ones(nr, dtype=bool)
         if nr:
             k = kidx[:nr]
@@ -227,14 +239,8 @@ class ErrorStateEkf(StreamingFilter):
             h = np.einsum("mi,mij->mj", u, rows[:, P_])
             if self.has_tag_lever:
                 h += np.einsum("mi,mij->mj", cross(tag_w, u), rows[:, TH])
-            y = rr - r_hat
-            self.nis = y * y / (((h @ self.P) * h).sum(axis=1) + self.sigma_r2)
-            self.short = y < 0.0
-            if self.gating:
-                used = self.nis <= self.gate1
-            hs.append(h[used])
-            ys.append(y[used])
-            rv.append(np.full(int(used.sum()), self.sigma_r2))
+            range_h, range_y = h, rr - r_hat
+            self.short = range_y < 0.0
         nw = len(wt)
         if nw:
             k = kidx[nr:]
@@ -247,7 +253,8 @@ class ErrorStateEkf(StreamingFilter):
             z[:, 0] = wv
             hs.append(h.reshape(3 * nw, N_ERR))
             ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
-            rv.append(self._r_wheel_rows(nw))
+            rv.append(np.tile(self.wheel_noise.r, nw))
+            noise.append(self.wheel_noise)
         if self.planar:  # soft planar constraint (height z0, level) at the window start
             ux, uy, uz = self.R[:, 2].tolist()
             h = self._h_planar
@@ -255,28 +262,31 @@ class ErrorStateEkf(StreamingFilter):
             h[2, 6], h[2, 8] = -uz, ux
             hs.append(h.copy())
             ys.append(np.array([self.z0 - self.p[2], -ux, -uy]))
-            rv.append(self.r_planar)
+            rv.append(self.planar_noise.r)
+            noise.append(self.planar_noise)
         dx0 = None
-        if hs:
-            H = np.concatenate(hs)
-            if len(H):
-                dx0, self.P, self.S, self.K = joseph_update(
-                    self.P, H, np.concatenate(rv), np.concatenate(ys)
-                )
-                self.y = np.concatenate(ys)
+        if hs:  # wheel speeds and the planar constraint: one stacked update
+            h_all = np.concatenate(hs)
+            s_pred = ((h_all @ self.P) * h_all).sum(axis=1)
+            dx0, self.P, self.S, self.K = joseph_update(
+                self.P, h_all, np.concatenate(rv), np.concatenate(ys)
+            )
+            self.y = np.concatenate(ys)
+            start = 0
+            for est, y_k in zip(noise, ys, strict=True):  # noise for the next windows
+                est.update(y_k, s_pred[start : start + len(y_k)])
+                start += len(y_k)
+        if nr:  # then the ranges one by one, robustly weighted
+            self.P, dx0, used, self.nis = sequential_ranges(
+                self.range_noise, self.P, np.zeros(N_ERR) if dx0 is None else dx0,
+                range_h, range_y, ra, rr,
+            )
         phi = pre.phi(-1)
         self.P = phi @ self.P @ phi.T + block_noise(phi, self.q_diag, float(pre.t[-1]))
         self.R, self.v, self.p = rs[-1], vs[-1], ps[-1]
         if dx0 is not None:
             self._inject(phi @ dx0)
         return used
-
-    def _r_wheel_rows(self, n: int) -> F64:
-        """Variances of n wheel measurements (forward, lateral, vertical each), cached."""
-        out = self._r_wheel_cache.get(n)
-        if out is None:
-            out = self._r_wheel_cache[n] = np.tile(self.r_wheel_diag, n)
-        return out
 
     def _inject(self, dx: F64) -> None:
         self.p = self.p + dx[P_]
@@ -309,6 +319,10 @@ class ErrorStateEkf(StreamingFilter):
     def position_covariance(self) -> F64:
         """Covariance (3,3) of the base position in the map frame, m^2."""
         return self.P[P_, P_].copy()
+
+    def pose_covariance(self) -> F64:
+        """(6,6) pose covariance: position and the global (map-axis) attitude error."""
+        return pose_covariance(self.P, (0, 1, 2, 6, 7, 8))
 
     def report(self) -> dict[str, Any]:
         out = super().report()
@@ -386,15 +400,10 @@ class UnicycleEkf(StreamingFilter):
             h = np.stack([u[:, 0], u[:, 1],
                           -u[:, 0] * (oy + ddy) + u[:, 1] * (ox + ddx)], axis=1)
             y = rr - r_hat
-            self.nis = y * y / (((h @ self.P) * h).sum(axis=1) + self.sigma_r2)
             self.short = y < 0.0
-            if self.gating:
-                used = self.nis <= self.gate1
-            if np.any(used):
-                dx0, self.P, self.S, self.K = joseph_update(
-                    self.P, h[used], np.full(int(used.sum()), self.sigma_r2), y[used]
-                )
-                self.y = y[used]
+            self.P, dx0, used, self.nis = sequential_ranges(
+                self.range_noise, self.P, np.zeros(3), h, y, ra, rr
+            )
         phi, q = unicycle_transition(
             np.diff(xb), np.diff(yb), v, dt, mid[0], self.sigma_v, self.sigma_w
         )
@@ -419,6 +428,10 @@ class UnicycleEkf(StreamingFilter):
         out = np.zeros((3, 3))
         out[:2, :2] = self.P[:2, :2]
         return out
+
+    def pose_covariance(self) -> F64:
+        """(6,6) pose covariance: x, y, yaw; z, roll and pitch are not estimated."""
+        return pose_covariance(self.P, (0, 1, None, None, None, 2))
 
 
 def make_filter(

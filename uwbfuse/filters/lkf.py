@@ -32,6 +32,7 @@ from scipy.stats import chi2
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
 from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.filters.models import pose_covariance
 from uwbfuse.filters.wls import EpochFixer, TagFix, TrackHeading, yaw_quat
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
@@ -168,7 +169,9 @@ class LkfEstimator:
         c, s = math.cos(self._yaw), math.sin(self._yaw)
         lever_map = np.array([c * self.lever[0] - s * self.lever[1],
                               s * self.lever[0] + c * self.lever[1], self.lever[2]])
-        self._est = PoseEstimate(int(t_ns), tag - lever_map, yaw_quat(self._yaw))
+        pos_idx = (0, 2, 4) if self.fixer.dim == 3 else (0, 2, None)
+        cov = pose_covariance(self.kf.P, (*pos_idx, None, None, None))
+        self._est = PoseEstimate(int(t_ns), tag - lever_map, yaw_quat(self._yaw), cov)
 
     def estimate(self) -> PoseEstimate | None:
         return self._est

@@ -24,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from uwbfuse.streams import UNKNOWN_VARIANCE
+
 F64 = NDArray[np.float64]
 
 NS_PER_S = 1_000_000_000
@@ -435,3 +437,18 @@ def joseph_update(
     a = (I15 if p.shape[0] == 15 else np.eye(p.shape[0])) - k @ h
     p_new = a @ p @ a.T + (k * r) @ k.T
     return k @ y, 0.5 * (p_new + p_new.T), s, k
+
+
+def pose_covariance(p: F64, index: tuple[int | None, ...]) -> F64:
+    """(6,6) pose covariance in ROS order (x, y, z m, rotation about the map x, y, z rad)
+    from a state covariance p: `index[k]` is the state index of pose component k, or None
+    for a component the estimator does not estimate (variance `UNKNOWN_VARIANCE`, no
+    correlation)."""
+    out = np.zeros((6, 6))
+    known = [k for k, i in enumerate(index) if i is not None]
+    idx = [index[k] for k in known]
+    out[np.ix_(known, known)] = p[np.ix_(idx, idx)]
+    for k, i in enumerate(index):
+        if i is None:
+            out[k, k] = UNKNOWN_VARIANCE
+    return out

@@ -19,8 +19,9 @@ mass with UWB position fixes and no LiDAR here):
   the IMU samples, all sigma points at once (`models.mechanise` is batched).
 - Without an IMU: the paper's odometer model (eq. 3, planar unicycle x, y, yaw) driven by
   the wheels.
-- UWB ranges are scalar measurements (tag lever arm included) with the EKF's chi-square
-  gate per range; wheel speeds are base-frame velocity measurements (forward v, zero
+- UWB ranges are scalar measurements (tag lever arm included), each weighted and gated
+  on its innovation and predicted variance as in the EKF (`adaptive_noise.RangeNoise`),
+  then updated together; wheel speeds are base-frame velocity measurements (forward v, zero
   lateral/vertical speed); soft planar height and roll/pitch constraint with wheels, as in
   the EKF.
 
@@ -41,6 +42,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
+from uwbfuse.filters.adaptive_noise import InnovationVariance, RangeNoise
 from uwbfuse.filters.base import InitialiserLike, build_filter
 from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
 from uwbfuse.filters.models import (
@@ -89,31 +91,45 @@ class MerweWeights:
 
 def _unscented_update(
     wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
-    gate_rows: int, gate: float | None,
+    noise: RangeNoise | None, anchor: np.ndarray,
+    row_noise: list[tuple[InnovationVariance, int]] | None = None,
 ) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray]:
     """Update from sigma-point states and predicted measurements.
 
     ex (2n+1, n): sigma-point state deviations from the central point; zs (2n+1, m):
-    predicted measurements; z (m,) measured; r (m,) variances; p_prior (n,n) the
-    predicted covariance (already with Q). The first `gate_rows` rows are gated one by one
-    with y^2 / Pzz_ii against `gate`. Returns the correction of the central point (n,), the
-    posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
-    normalised innovations squared of the gated rows and which of those measured short
-    (negative innovation).
+    predicted measurements; z (m,) measured; r (m,) variances; p_prior (n,n) the predicted
+    covariance (already with Q). The first len(anchor) rows are ranges of those anchors:
+    each is weighed by `noise` (`RangeNoise.weigh`: NLOS mixture posterior as the
+    measurement, chi-square gate) on its innovation and predicted variance, and replaces its
+    r; the rows after them (wheel speeds, planar constraint) feed `row_noise` in order:
+    (estimator, number of rows) per block. Returns the correction of the central point (n,),
+    the posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
+    normalised innovations squared of the ranges and which of those measured short (negative
+    innovation).
     """
+    nr = len(anchor)
     ex_mean = wts.wm @ ex
     dz0 = zs - zs[0]
     z_mean = zs[0] + wts.wm @ dz0
     dx = ex - ex_mean
     dz = zs - z_mean
     pzz = (dz.T * wts.wc) @ dz
-    pzz[np.diag_indices_from(pzz)] += r
     y = z - z_mean
     keep = np.ones(len(z), dtype=bool)
-    nis = y[:gate_rows] ** 2 / np.diag(pzz)[:gate_rows]
-    short = y[:gate_rows] < 0.0
-    if gate is not None and gate_rows:
-        keep[:gate_rows] = nis <= gate
+    short = y[:nr] < 0.0
+    nis = np.zeros(nr)
+    r = r.copy()
+    if nr and noise is not None:
+        s_pred = np.diag(pzz)[:nr].copy()
+        y_raw = y[:nr].copy()
+        y[:nr], r[:nr], keep[:nr], nis = noise.weigh(anchor, y_raw, s_pred)
+        noise.accept(anchor, y_raw, s_pred, keep[:nr], z[:nr])
+    start = nr
+    s_all = np.diag(pzz)
+    for est, n_rows in row_noise or ():
+        est.update(y[start : start + n_rows], s_all[start : start + n_rows])
+        start += n_rows
+    pzz[np.diag_indices_from(pzz)] += r
     if not np.any(keep):
         return ex_mean, p_prior, y, keep, nis, short
     pzz = pzz[np.ix_(keep, keep)]
@@ -173,12 +189,13 @@ class ErrorStateUkf(ErrorStateEkf):
         zs: list[F64] = []
         zm: list[F64] = []
         rv: list[F64] = []
+        noise: list[tuple[InnovationVariance, int]] = []
         if nr:
             k = kidx[:nr]
             d = ps[:, k] + rs[:, k] @ self.tag_b - self.anchor_pos[ra]
             zs.append(np.sqrt(np.einsum("smi,smi->sm", d, d)))
             zm.append(rr)
-            rv.append(np.full(nr, self.sigma_r2))
+            rv.append(np.zeros(nr))  # replaced by the range noise's weights
         if nw:
             k = kidx[nr:]
             vb = np.einsum("smji,smj->smi", rs[:, k], vs[:, k])   # R^T v per point and stamp
@@ -186,17 +203,19 @@ class ErrorStateUkf(ErrorStateEkf):
             z = np.zeros((nw, 3))
             z[:, 0] = wv
             zm.append(z.reshape(-1))
-            rv.append(np.tile(self.r_wheel_diag, nw))
+            rv.append(np.tile(self.wheel_noise.r, nw))
+            noise.append((self.wheel_noise, 3 * nw))
         if self.planar:  # height z0 and level, at the window start
             zs.append(np.concatenate([self.p[2] + off[:, 2:3], r0[:, :2, 2]], axis=1))
             zm.append(np.array([self.z0, 0.0, 0.0]))
-            rv.append(self.r_planar)
+            rv.append(self.planar_noise.r)
+            noise.append((self.planar_noise, 3))
         used = np.ones(nr, dtype=bool)
         corr = ex_mean
         if zs:
             corr, p_prior, self.y, keep, nis, self.short = _unscented_update(
                 wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
-                p_prior, nr, self.gate1 if self.gating else None,
+                p_prior, self.range_noise, ra, noise,
             )
             used = keep[:nr]
             self.nis = nis
@@ -264,8 +283,7 @@ class UnicycleUkf(UnicycleEkf):
             dz_ = self.z0 + tz - a[:, 2]
             zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
             corr, p_prior, y, used, self.nis, self.short = _unscented_update(
-                wts, ex, zs, rr, np.full(nr, self.sigma_r2), p_prior, nr,
-                self.gate1 if self.gating else None,
+                wts, ex, zs, rr, np.zeros(nr), p_prior, self.range_noise, ra,
             )
             self.y = y
         self.P = p_prior

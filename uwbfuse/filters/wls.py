@@ -32,6 +32,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
 from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.filters.models import pose_covariance
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
     epoch_window_ns,
@@ -263,6 +264,17 @@ class EpochFixer:
         }
 
 
+def fix_covariance(fx: TagFix) -> np.ndarray:
+    """(6,6) pose covariance (ROS order, map axes) of a fix: the least-squares covariance of
+    its position axes (x, y; z too for a 3-D fix); the height of a 2-D fix and the attitude
+    (track direction, not estimated) get `UNKNOWN_VARIANCE`."""
+    cov = np.asarray(fx.cov, dtype=np.float64)
+    if not np.all(np.isfinite(cov)):
+        return pose_covariance(np.zeros((0, 0)), (None,) * 6)
+    axes = (0, 1, 2) if fx.dim == 3 else (0, 1, None)
+    return pose_covariance(cov, (*axes, None, None, None))
+
+
 class TrackHeading:
     """Yaw (rad) as the direction of motion over the last `min_track` metres of positions."""
 
@@ -295,6 +307,7 @@ class WlsEstimator:
         self.heading = TrackHeading(config.wls.min_track)
         self.lever = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self._tag: np.ndarray | None = None
+        self._cov: np.ndarray | None = None
         self._est: PoseEstimate | None = None
         self.n_held = 0
 
@@ -311,6 +324,7 @@ class WlsEstimator:
         fx = self.fixer.fix(t_ns)
         if fx is not None:
             self._tag = fx.position
+            self._cov = fix_covariance(fx)
             self.heading.update(t_ns / NS_PER_S, fx.position)
         elif self._tag is not None:
             self.n_held += 1
@@ -321,7 +335,7 @@ class WlsEstimator:
         c, s = math.cos(yaw), math.sin(yaw)
         lever_map = np.array([c * self.lever[0] - s * self.lever[1],
                               s * self.lever[0] + c * self.lever[1], self.lever[2]])
-        self._est = PoseEstimate(int(t_ns), self._tag - lever_map, yaw_quat(yaw))
+        self._est = PoseEstimate(int(t_ns), self._tag - lever_map, yaw_quat(yaw), self._cov)
 
     def estimate(self) -> PoseEstimate | None:
         return self._est

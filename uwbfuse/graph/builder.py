@@ -51,6 +51,7 @@ from uwbfuse.graph.wheel import (
     se2_to_pose3,
 )
 from uwbfuse.positioning.initialisation import range_scale_applies
+from uwbfuse.positioning.start import planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -76,9 +77,12 @@ MAX_SCALE = 0.2  # bound on a range scale error
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
 PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
-# ranges before the online prequential scores start (the robust sigma needs them) and, as
-# many again, before they may switch the model
+# ranges before the online prequential scores start (the robust sigma needs them), and
+# scored ranges before their paired test may decide
 MIN_PREQUENTIAL_RANGES = 100
+# the online range model changes when the other's mean score advantage per range is this
+# many standard errors from zero (a one-sided paired test at about 0.1 %)
+PREQUENTIAL_Z = 3.0
 
 
 @dataclass
@@ -234,18 +238,6 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
     return min(max(s, SIGMA_LOS_MIN), prior)
 
 
-def planar_height(anchors: AnchorMap, z_start: float) -> float:
-    """Base height (m) held by the planar constraint.
-
-    When the anchors are (nearly) coplanar the ranges barely observe height, so a start
-    height solved from them is unreliable: the floor is then taken at the map frame's z = 0
-    (anchor heights are measured from the floor). With anchors spread over at least 1 m of
-    height the start height is used.
-    """
-    z = anchors.positions[:, 2]
-    return z_start if float(z.max() - z.min()) >= 1.0 else 0.0
-
-
 class GraphBuilder:
     """Turns buffered sensor data into keyframes and factors (see the module docstring)."""
 
@@ -282,6 +274,7 @@ class GraphBuilder:
         # LOS sigma of the range factors, from residuals at the smoothed estimate (the
         # mixture's is the one-step prediction's, wider by the prediction error)
         self.smoothed_sigma_los: float | None = None
+        self.smoothed_robust_sigma: float | None = None  # the same over all ranges, uncapped
         self._smoothed_window = ResidualWindow()
         m = len(anchors)
         self.anchor_p = np.full(m, self.mixture.p_nlos)
@@ -346,8 +339,15 @@ class GraphBuilder:
         # online choice of the range model by prequential score: the log predictive density
         # (nats) of each new range under the mixture and under the robust model, summed
         self.prequential = np.zeros(2)
-        self.prequential_n = 0
-        self.robust_online = False  # new ranges weighted as the robust model, no NLOS states
+        self.prequential_n = 0  # ranges seen (their |residual| feeds the robust sigma)
+        self._pq_n = 0  # ranges scored, and the sums of their score differences d, d^2
+        self._pq_sum = 0.0
+        self._pq_sum2 = 0.0
+        # new ranges weighted as the robust model (no NLOS states) where it is configured;
+        # `auto` keeps the mixture online and hands the verdict to batch: switched online on
+        # early evidence, the graph lost more where the mixture later proved right (factory)
+        # than it gained where it did not (Plaza)
+        self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
         self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
         self._abs_i = 0
 
@@ -660,7 +660,10 @@ class GraphBuilder:
                     ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
                     None if jump is None else jump[sel])
             self._online_m_step(r_los, r_nlos, g)
-            self._prequential_choice(r_los, ll_l, ll_n, prior)
+            settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)
+            if np.any(settled):
+                self._prequential_choice(r_los[settled], ll_l[settled], ll_n[settled],
+                                         prior[settled])
             if self.robust_online:
                 g[:] = 0.0
         else:
@@ -708,7 +711,7 @@ class GraphBuilder:
         uwb = self.cfg.uwb
         t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
         if self.robust_online:
-            sig_l = self.smoothed_sigma_los or self.robust_sigma()
+            sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         out = []
@@ -804,42 +807,52 @@ class GraphBuilder:
         return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
 
     def prequential_verdict(self) -> str | None:
-        """"mixture" or "robust" once the prequential scores could decide (auto), else
-        None (too few ranges, or a configured model)."""
+        """"robust" or "mixture" where the prequential scores favour one significantly
+        (`prequential_z` beyond PREQUENTIAL_Z), else None (too little evidence, or a
+        configured model)."""
         if self.g.range_model != "auto" or not self.nlos:
             return None
-        if self.prequential_n < 2 * MIN_PREQUENTIAL_RANGES:
-            return None
-        return "robust" if self.robust_online else "mixture"
+        z = self.prequential_z()
+        if z > PREQUENTIAL_Z:
+            return "robust"
+        return "mixture" if z < -PREQUENTIAL_Z else None
+
+    def prequential_z(self) -> float:
+        """Mean per-range score advantage of the robust model over the mixture (nats) in
+        units of its standard error: a paired test on the ranges scored so far."""
+        n = self._pq_n
+        if n < MIN_PREQUENTIAL_RANGES:
+            return 0.0
+        mean = self._pq_sum / n
+        var = max(self._pq_sum2 / n - mean * mean, 1e-12)
+        return mean / math.sqrt(var / n)
 
     def _prequential_choice(
         self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
     ) -> None:
-        """Score the new ranges (before they are used) under both range models and weight
-        the ranges to come by the better one so far: the online counterpart of batch's
-        held-out choice (`graph.range_model`). Scored once the robust sigma has
-        MIN_PREQUENTIAL_RANGES residuals behind it."""
+        """Score the new ranges (before they are used) under both range models
+        (prequential): the online counterpart of batch's held-out choice, whose verdict
+        (`prequential_verdict`) batch takes (`graph.range_model = "auto"`). Only ranges a
+        lag after the start are scored (before, the one-step predictions come from a graph
+        still settling its start), once the robust sigma has MIN_PREQUENTIAL_RANGES
+        residuals behind it."""
         if self.g.range_model == "mixture":
             return
         n = len(r_los)
         idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
-        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES or self.g.range_model != "auto":
+        if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
             p = np.clip(prior, 1e-3, 1.0 - 1e-3)
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
             lp_rob = np.logaddexp(huber_log_density(r_los, self.robust_sigma(),
                                                     self.cfg.uwb.kernel_threshold), LOG_OUTLIER)
             self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+            d = lp_rob - lp_mix
+            self._pq_n += n
+            self._pq_sum += float(np.sum(d))
+            self._pq_sum2 += float(np.sum(d * d))
         self._abs_r[idx] = np.abs(r_los)
         self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
         self.prequential_n += n
-        robust = (self.g.range_model != "auto" or (
-            self.prequential_n >= 2 * MIN_PREQUENTIAL_RANGES
-            and self.prequential[1] > self.prequential[0]))
-        if robust != self.robust_online:
-            log.info("online range model: %s (prequential score mixture %.1f, robust %.1f "
-                     "nats over %d ranges)", "robust" if robust else "mixture",
-                     self.prequential[0], self.prequential[1], self.prequential_n)
-        self.robust_online = robust
 
     def add_smoothed_residuals(self, r_los: np.ndarray, g: np.ndarray) -> None:
         """Update `smoothed_sigma_los` from LOS residuals (m) at the smoothed estimate and
@@ -855,6 +868,9 @@ class GraphBuilder:
         s = robust_los_sigma(rr, gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.smoothed_sigma_los = s
+        if len(rr) >= MIN_PREQUENTIAL_RANGES:  # the robust model's: every range, no cap
+            mad = NORMAL_MAD_SCALE * float(np.median(np.abs(rr - np.median(rr))))
+            self.smoothed_robust_sigma = float(np.clip(mad, SIGMA_LOS_MIN, 1.0))
 
     def _record(self, inc: Increment) -> None:
         if self.record and self.full_graph is not None and self.full_values is not None:

@@ -54,7 +54,6 @@ from uwbfuse.graph.imu import ImuBuffer
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
-from uwbfuse.graph.sparse_start import SparseStartInitialiser
 from uwbfuse.graph.uwb import (
     hmm_smooth,
     jump_log_likelihoods,
@@ -62,6 +61,7 @@ from uwbfuse.graph.uwb import (
     residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
+from uwbfuse.positioning.sparse_start import SparseStartInitialiser
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -777,7 +777,8 @@ class GraphEstimator:
             "model": "robust" if b.robust_online else "mixture",
             "prequential_log_score": {"mixture": float(b.prequential[0]),
                                       "robust": float(b.prequential[1])},
-            "ranges": b.prequential_n}
+            "ranges": b.prequential_n, "z": b.prequential_z(),
+            "verdict": b.prequential_verdict()}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out

@@ -324,10 +324,10 @@ def solve(
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
-    `graph.range_model = "auto"`: the online pass's prequential verdict (`online_verdict`,
-    "mixture" or "robust", None when it saw too few ranges) picks the family; held-out
-    cross-validation (`_cross_validated`) decides what it leaves open (the family on a
-    short log, the robust model's common or per-anchor scale).
+    `graph.range_model = "auto"`: where the online pass's prequential test found the
+    mixture significantly better (`online_verdict` "mixture") it is fitted alone; otherwise
+    held-out cross-validation (`_cross_validated`) chooses among the candidates (the
+    online verdict is the pass's own, whose trajectory differs from batch's fits).
 
     EM from the online trajectory classifies each range against a trajectory that, where
     most anchors are blocked at once, has already been pulled towards the NLOS ranges: they
@@ -352,9 +352,8 @@ def solve(
     candidates = {m.name: m for m in RANGE_MODELS if scale0 is not None or not m.common_scale}
     if cfg.graph.range_model != "auto":
         return problem.fit(candidates[cfg.graph.range_model], rec, initial, model, scale0)
-    if online_verdict is not None:
-        candidates = {n: m for n, m in candidates.items() if m.nlos == (online_verdict ==
-                                                                        "mixture")}
+    if online_verdict == "mixture":  # the online pass already scored it decisively better
+        candidates = {n: m for n, m in candidates.items() if m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))

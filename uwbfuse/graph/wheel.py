@@ -12,196 +12,21 @@ The wheel twist is already in the base frame, so the base extrinsics are the ide
 
 from __future__ import annotations
 
-import math
-
 import gtsam
 import numpy as np
 
-from uwbfuse.config import WheelConfig
 from uwbfuse.graph.noise import gaussian_covariance
-from uwbfuse.streams import NS_PER_S
-
-
-def _arcs(v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Local (dx, dy, dtheta) of constant-velocity arcs (vectorised)."""
-    th = w * tau
-    s = v * tau
-    small = np.abs(th) < 1e-6
-    th_safe = np.where(small, 1.0, th)
-    dx = np.where(small, s * (1.0 - th * th / 6.0), s * np.sin(th_safe) / th_safe)
-    dy = np.where(small, s * th / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
-    return dx, dy, th
-
-
-def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a (+) b for SE(2) poses (x, y, theta), broadcasting over leading axes."""
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [a[..., 0] + c * b[..., 0] - s * b[..., 1],
-         a[..., 1] + s * b[..., 0] + c * b[..., 1],
-         a[..., 2] + b[..., 2]], axis=-1)
-
-
-def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a^-1 (+) b for SE(2) poses (x, y, theta)."""
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    dth = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
+from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
+    WheelTrack,
+    _arcs,
+    se2_between,
+    se2_compose,
+)
 
 
 def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
     """Planar (x, y, theta) as a Pose3 (z = 0, roll = pitch = 0)."""
     return gtsam.Pose3(gtsam.Rot3.Yaw(float(d[2])), np.array([d[0], d[1], 0.0]))
-
-
-class WheelTrack:
-    """Cumulative planar dead reckoning from wheel samples, queryable at any time.
-
-    The track starts at (0, 0, 0) at the first sample's stamp; before it and after the
-    last sample it extrapolates with the first/last velocity.
-    """
-
-    def __init__(self) -> None:
-        # storage with spare capacity: a log feeds its samples in small batches (one per
-        # output epoch), and re-concatenating the whole track for each was quadratic in the
-        # log's length (a 1-hour log: 36,000 copies of up to 180,000 samples)
-        self._n = 0
-        self._t = np.zeros(0, dtype=np.int64)
-        self._v = np.zeros(0)
-        self._w = np.zeros(0)
-        self._pose = np.zeros((0, 3))
-
-    @property
-    def t(self) -> np.ndarray:
-        """Sample stamps (n,), ns."""
-        return self._t[: self._n]
-
-    @property
-    def v(self) -> np.ndarray:
-        """Forward speeds (n,), m/s."""
-        return self._v[: self._n]
-
-    @property
-    def w(self) -> np.ndarray:
-        """Yaw rates (n,), rad/s."""
-        return self._w[: self._n]
-
-    @property
-    def pose(self) -> np.ndarray:
-        """Track pose (x m, y m, theta rad) at each stamp (n, 3)."""
-        return self._pose[: self._n]
-
-    def __len__(self) -> int:
-        return self._n
-
-    def _reserve(self, extra: int) -> None:
-        need = self._n + extra
-        if need <= len(self._t):
-            return
-        cap = max(need, 2 * len(self._t), 1024)
-        for name in ("_t", "_v", "_w", "_pose"):
-            old = getattr(self, name)
-            new = np.empty((cap, *old.shape[1:]), dtype=old.dtype)
-            new[: self._n] = old[: self._n]
-            setattr(self, name, new)
-
-    def add(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
-        """Append a time-sorted batch of samples (stamps ns, v m/s, omega rad/s)."""
-        t_ns = np.asarray(t_ns, np.int64)
-        if len(t_ns) == 0:
-            return
-        v, omega = np.asarray(v, float), np.asarray(omega, float)
-        if self._n:
-            keep = t_ns > self._t[self._n - 1]
-            t_ns, v, omega = t_ns[keep], v[keep], omega[keep]
-            if len(t_ns) == 0:
-                return
-            prev_t = np.concatenate([[self._t[self._n - 1]], t_ns[:-1]])
-            start = self._pose[self._n - 1]
-        else:
-            prev_t = np.concatenate([[t_ns[0]], t_ns[:-1]])
-            start = np.zeros(3)
-        tau = (t_ns - prev_t).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(v, omega, tau)
-        th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
-        c, s = np.cos(th_prev), np.sin(th_prev)
-        gx, gy = c * dx - s * dy, s * dx + c * dy
-        poses = np.stack([start[0] + np.cumsum(gx), start[1] + np.cumsum(gy),
-                          start[2] + np.cumsum(dth)], axis=-1)
-        m = len(t_ns)
-        self._reserve(m)
-        sl = slice(self._n, self._n + m)
-        self._t[sl], self._v[sl], self._w[sl], self._pose[sl] = t_ns, v, omega, poses
-        self._n += m
-
-    def at(self, t_ns: np.ndarray | int) -> np.ndarray:
-        """Track pose(s) (x, y, theta) at `t_ns` (scalar or array of ns)."""
-        tq = np.atleast_1d(np.asarray(t_ns, np.int64))
-        n = len(self.t)
-        if n == 0:
-            return np.zeros((len(tq), 3)) if np.ndim(t_ns) else np.zeros(3)
-        i = np.searchsorted(self.t, tq, side="left")  # t[i-1] < tq <= t[i]
-        i_c = np.clip(i, 0, n - 1)
-        base_i = np.clip(i - 1, 0, n - 1)
-        base = self.pose[base_i].copy()
-        # before the first stamp: go backwards from sample 0 with its velocity
-        before = i == 0
-        base[before] = self.pose[0]
-        t_base = self.t[base_i].copy()
-        t_base[before] = self.t[0]
-        after = i >= n
-        vel_i = np.where(after, n - 1, i_c)
-        tau = (tq - t_base).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(self.v[vel_i], self.w[vel_i], tau)
-        out = se2_compose(base, np.stack([dx, dy, dth], axis=-1))
-        return out if np.ndim(t_ns) else out[0]
-
-    def between(self, t_a: int, t_b: int) -> np.ndarray:
-        """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a."""
-        p = self.at(np.array([t_a, t_b], dtype=np.int64))
-        return se2_between(p[0], p[1])
-
-    def covariance(self, t_a: int, t_b: int, cfg: WheelConfig) -> np.ndarray:
-        """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise."""
-        n = len(self.t)
-        cov = np.zeros((3, 3))
-        if n == 0 or t_b <= t_a:
-            return cov + np.diag([1e-6, 1e-6, 1e-6])
-        i0 = int(np.searchsorted(self.t, t_a, side="left"))
-        i1 = int(np.searchsorted(self.t, t_b, side="left"))
-        edges = np.concatenate([[t_a], self.t[i0:min(i1, n)], [t_b]])
-        edges = np.unique(np.clip(edges, t_a, t_b))
-        mid = (edges[:-1] + edges[1:]) // 2
-        idx = np.clip(np.searchsorted(self.t, mid, side="left"), 0, n - 1)
-        tau = np.diff(edges).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
-        q0, q1, q2 = cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2
-        # P <- F P F^T + G Q G^T per piece, F = [[1, 0, a], [0, 1, b], [0, 0, 1]] (a, b: the
-        # piece's translation in the frame at t_a, turned by 90 deg), G = rot(theta) (+) 1,
-        # Q = diag(q) tau^2; in scalars: a few pieces per keyframe, and 3x3 numpy products
-        # cost ~10x more per piece than the arithmetic
-        p00 = p01 = p02 = p11 = p12 = p22 = 0.0
-        th = 0.0
-        for dxj, dyj, dthj, tj in zip(dx.tolist(), dy.tolist(), dth.tolist(), tau.tolist(),
-                                      strict=True):
-            c, s = math.cos(th), math.sin(th)
-            a = -s * dxj - c * dyj
-            b = c * dxj - s * dyj
-            r00, r01, r02 = p00 + a * p02, p01 + a * p12, p02 + a * p22
-            n00 = r00 + a * r02
-            n01 = r01 + b * r02
-            n11 = (p11 + b * p12) + b * (p12 + b * p22)
-            t2 = tj * tj
-            g0, g1 = q0 * t2, q1 * t2
-            p00 = n00 + c * c * g0 + s * s * g1
-            p01 = n01 + c * s * (g0 - g1)
-            p11 = n11 + s * s * g0 + c * c * g1
-            p02, p12 = r02, p12 + b * p22
-            p22 = p22 + q2 * t2
-            th += dthj
-        cov = np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
-        return cov
 
 
 def planar_covariance6(

@@ -24,7 +24,7 @@ Steps:
    solution is accepted when the heading std and the residuals are consistent (robust
    spread within 3 range sigmas or 3 % of the median range, whichever is larger: large
    sites) and no other minimum comes close. This raw-range solve over the wheel track is
-   what `graph/start.py` does for round-robin ranges, so the graph can use it too.
+   what `positioning/start.py` does for round-robin ranges, so the graph can use it too.
 3. UWB only: position from the fixes; heading is the UWB track direction once moving
    (or unknown, yaw_sigma = pi, after `heading_timeout` seconds without motion).
 

@@ -307,3 +307,35 @@ def calibrate_nlos_file(
     lines += ["", "[wls.anchor_nlos]  # id = [los_std, nlos_mean, nlos_std, nlos_prior]"]
     lines += [f'"{k}" = {_toml_value(v)}' for k, v in per_anchor.items()]
     return "\n".join(lines) + "\n"
+
+
+def fit_nlos_mixture(
+    residual: F64, extra_var: F64, prior: NlosParams, n0: float, iterations: int = 8,
+) -> NlosParams:
+    """EM fit of the LOS/NLOS model to range residuals without ground truth.
+
+    residual (N,) m: measured minus predicted range (e.g. a filter's innovations), each with
+    the variance extra_var (N,) m^2 of its prediction added to both components. E-step:
+    `nlos_probability`; M-step: NLOS share and mean, and each component's spread with the
+    prediction variance taken out. `prior` counts as n0 ranges in every estimate (it holds
+    the model where the data say little). The NLOS mean is kept >= 0 (NLOS only lengthens
+    a range) and the LOS std within [_MIN_LOS_STD, _MAX_LOS_STD].
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    s = np.asarray(extra_var, dtype=np.float64)
+    los, mu, nstd, pi = prior.los_std, prior.nlos_mean, prior.nlos_std, prior.nlos_prior
+    if len(r) == 0:
+        return prior
+    for _ in range(iterations):
+        g = nlos_probability(r, np.float64(los), np.float64(mu), np.float64(nstd),
+                             np.float64(pi), extra_var=s)
+        sg, sl = float(g.sum()), float(len(r) - g.sum())
+        pi = float(np.clip((sg + n0 * prior.nlos_prior) / (len(r) + n0), 0.01, 0.95))
+        mu = max((float(g @ r) + n0 * prior.nlos_mean) / (sg + n0), 0.0)
+        v_l = (float((1.0 - g) @ (r * r - s)) + n0 * prior.los_std**2) / (sl + n0)
+        d = r - mu
+        v_n = (float(g @ (d * d - s)) + n0 * prior.nlos_std**2) / (sg + n0)
+        los = float(np.clip(math.sqrt(max(v_l, 0.0)), _MIN_LOS_STD, _MAX_LOS_STD))
+        nstd = max(math.sqrt(max(v_n, 0.0)), los)
+
+    return NlosParams(los, mu, nstd, pi)

@@ -20,8 +20,8 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from uwbfuse.graph.wheel import WheelTrack, se2_compose
 from uwbfuse.positioning.initialisation import InitialState
+from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
 
 MIN_TRAVEL_M = 2.0  # path length before a heading is attempted, m
@@ -171,3 +171,15 @@ def solve_static(
     if other and other[0] < MIN_COST_RATIO * best_cost:
         return None
     return best[:2].copy(), float(best[2]), rms
+
+
+def planar_height(anchors: AnchorMap, z_start: float) -> float:
+    """Base height (m) held by the planar constraint.
+
+    When the anchors are (nearly) coplanar the ranges barely observe height, so a start
+    height solved from them is unreliable: the floor is then taken at the map frame's z = 0
+    (anchor heights are measured from the floor). With anchors spread over at least 1 m of
+    height the start height is used.
+    """
+    z = anchors.positions[:, 2]
+    return z_start if float(z.max() - z.min()) >= 1.0 else 0.0

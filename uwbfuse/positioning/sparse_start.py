@@ -24,18 +24,18 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.graph.builder import planar_height
-from uwbfuse.graph.start import (
+from uwbfuse.positioning.start import (
     MIN_TRAVEL_M,
     STATIC_MAX_DRIFT_M,
     STATIC_MAX_SPEED,
     STATIC_MAX_TURN_RAD,
     STATIC_MAX_YAW_RATE,
+    planar_height,
     solve_start,
     solve_static,
     track_travel,
 )
-from uwbfuse.graph.wheel import WheelTrack
+from uwbfuse.positioning.wheel_track import WheelTrack
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)

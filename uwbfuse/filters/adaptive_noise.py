@@ -1,0 +1,254 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Measurement noise of the Kalman baselines (EKF, UKF), estimated from their innovations.
+
+Ranges (`RangeNoise`): each range enters the filter as one scalar update. Its innovation y
+(measured minus predicted range, m) with prediction variance s = h P h^T (m^2) is weighed
+with the project's LOS/NLOS range-error model (`positioning.nlos_model`: LOS N(0,
+los_std^2), NLOS N(nlos_mean, nlos_std^2)): the posterior NLOS probability p of the range
+(`nlos_probability`, the prediction variance added to both components) gives the moment-
+matched mixture posterior as the measurement, i.e. the expected NLOS excess p nlos_mean is
+removed from the range and its variance is (1-p) los^2 + p nlos^2 + p (1-p) nlos_mean^2
+(variance inflation: a range that looks NLOS counts for less, and a LOS one for the radio's
+own noise).
+
+NLOS persists for a while behind the same obstacle, so each anchor's prior for its next
+range is its last posterior carried through a two-state Markov chain: (1 - q) p_last +
+q p_nlos, with q the switching rate.
+
+Every parameter comes from the log: the mixture is re-fitted by EM (`fit_nlos_mixture`)
+over the innovations of the last `WINDOW` accepted ranges every `REFIT_EVERY` ranges, with
+the `[wls]` model as a prior worth `PRIOR_RANGES` ranges; the switching rate is the
+expected number of LOS/NLOS changes between consecutive ranges of an anchor (from the
+posteriors), with the graph's `nlos_switch` as its prior, same weight.
+
+Gating: a range whose squared innovation, after the mixture correction, exceeds the
+chi-square quantile of `[ekf] gate_probability` times its variance (mixture plus
+prediction) is rejected (gross outliers, short or long). The prediction variance grows
+through an outage with the process noise, so the gate widens with it and does not lock
+out; the filters' divergence recovery (`base.StreamingFilter`) covers a state that is off
+by more than its covariance says.
+
+Wheel speeds and the planar floor constraint (`InnovationVariance`): covariance matching
+(Mehra 1970): for a consistent filter E[y^2] = h P h^T + r for every measurement row, so r =
+E[y^2 - h P h^T] over the recent rows of its kind, with the configured variance as a prior
+worth `PRIOR_ROWS` rows. Each row counts at its positive part, max(y^2 - h P h^T, 0):
+conservative (biased high where the prediction variance dominates), which leaves room for
+errors the white model does not have (a wheel scale error, slip that lasts a turn). A skid-
+steer vehicle that slips sideways in turns, or a floor that rolls the vehicle by 12 degrees,
+loosens its own constraint; encoders better than the configured default tighten theirs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from uwbfuse.config import Config
+from uwbfuse.filters.models import F64, gate_threshold
+from uwbfuse.positioning.nlos_model import (
+    NlosModel,
+    NlosParams,
+    fit_nlos_mixture,
+    nlos_probability,
+)
+
+#: Accepted ranges between two EM refits of the mixture.
+REFIT_EVERY = 200
+#: Accepted ranges (the newest) each refit uses.
+WINDOW = 4000
+#: Weight of the configured `[wls]` model in each refit, in ranges.
+PRIOR_RANGES = 200.0
+#: Weight of a configured wheel/planar variance, in measurement rows, and the memory of
+#: the running estimate (rows; exponential forgetting).
+PRIOR_ROWS = 200.0
+MEMORY_ROWS = 2000.0
+#: Floor of a matched variance as a share of the configured one: sampling noise can drive
+#: E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid.
+MIN_SHARE = 0.01
+#: Bounds of an anchor's prior NLOS probability (the chain never becomes certain).
+P_BOUNDS = (0.01, 0.99)
+
+
+class RangeNoise:
+    """Per-range NLOS weighting and gating with a mixture fitted to the innovations."""
+
+    def __init__(self, config: Config, n_anchor: int) -> None:
+        self.prior = NlosModel.from_config(config.wls).default
+        self.model = self.prior
+        self.gating = config.ekf.gating
+        self.gate = gate_threshold(config.ekf.gate_probability, 1)
+        self.p_last = np.full(n_anchor, self.prior.nlos_prior)
+        self.q0 = config.graph.nlos_switch
+        self.q = self.q0
+        self._switch_sum = 0.0
+        self._switch_n = 0
+        self._seen = np.zeros(n_anchor, dtype=bool)
+        self._y = np.zeros(WINDOW)
+        self._s = np.zeros(WINDOW)
+        # common range scale (ranges read `scale` x the distance): the start solve's
+        # (`set_start_scale`), then at every refit the LOS-weighted least-squares fit of the
+        # ranges as read to the predicted distances of all accepted ranges so far, with the
+        # start's value as prior of std `[graph] range_scale_sigma`
+        self.scale = 1.0
+        self._scale0 = 1.0
+        self.refine_scale = True
+        self.scale_precision = 1.0 / config.graph.range_scale_sigma**2
+        self._sxy = 0.0
+        self._sxx = 0.0
+        self._n = 0          # accepted ranges recorded so far
+        self._since = 0      # accepted ranges since the last refit
+        self.refits = 0
+
+    def set_start_scale(self, scale: float, refine: bool) -> None:
+        """The start solve's common range scale: applied at once, and the prior of the fit.
+        `refine`: fit it to the ranges from then on; only where the tag height is held (a
+        planar vehicle): a tag free in 3-D trades height for scale (ISAS-Walk1: the fit went
+        to 0.982 with 2-D ATE 0.167 -> 0.196 m)."""
+        self.scale = self._scale0 = float(scale)
+        self.refine_scale = refine
+
+    def widen_los_prior(self, los_std: float) -> None:
+        """Take at least `los_std` (m; the start solve's residual spread, at least `[uwb]
+        sigma`) as the LOS spread of the model and of the refits' prior. (With the `[wls]`
+        0.026 m as prior the UWB + IMU filter on simulated warehouse logs became
+        overconfident: NEES 700 against about 3; with it, room fits 0.034 m for 0.026.)"""
+        if los_std > self.model.los_std:
+            self.model = replace(self.model, los_std=float(los_std))
+            self.prior = replace(self.prior, los_std=float(los_std))
+
+    def weigh(
+        self, anchor: np.ndarray, y: F64, s: F64
+    ) -> tuple[F64, F64, np.ndarray, F64]:
+        """Weigh ranges of anchors `anchor` (M,) with innovations y (M,) m and prediction
+        variances s (M,) m^2. Returns the corrected innovations (M,) m, their variances
+        (M,) m^2 (mixture posterior, prediction not included), the accepted mask (M,) and
+        the normalised innovations squared (M,). Does not record anything (`accept` does)."""
+        m = self.model
+        prior = (1.0 - self.q) * self.p_last[anchor] + self.q * m.nlos_prior
+        prior = np.clip(prior, *P_BOUNDS)
+        p = nlos_probability(y, np.float64(m.los_std), np.float64(m.nlos_mean),
+                             np.float64(m.nlos_std), prior, extra_var=s)
+        mu = m.nlos_mean
+        var = (1.0 - p) * m.los_std**2 + p * m.nlos_std**2 + p * (1.0 - p) * mu * mu
+        yc = y - p * mu
+        nis = yc * yc / (var + s)
+        ok = nis <= self.gate if self.gating else np.ones(len(y), dtype=bool)
+        self._p = p
+        return yc, var, ok, nis
+
+    def accept(
+        self, anchor: np.ndarray, y: F64, s: F64, ok: np.ndarray, rng: F64,
+    ) -> None:
+        """Record the ranges `rng` (m, as scaled) of the last `weigh` call that were used
+        (mask `ok`): their posteriors become the anchors' chain state, their innovations
+        feed the EM and the range-scale regression."""
+        if not np.any(ok):
+            return
+        a, p = anchor[ok], self._p[ok]
+        pred = rng[ok] - y[ok]
+        w = (1.0 - p) / (self.model.los_std**2 + s[ok])
+        self._sxy += float(w @ (rng[ok] * self.scale * pred))  # as read x predicted
+        self._sxx += float(w @ (pred * pred))
+        seen = self._seen[a]
+        prev = self.p_last[a]
+        sw = prev * (1.0 - p) + (1.0 - prev) * p
+        self._switch_sum += float(sw[seen].sum())
+        self._switch_n += int(seen.sum())
+        self.p_last[a] = p  # (a repeated anchor keeps its last range's value)
+        self._seen[a] = True
+        yy, ss = y[ok], s[ok]
+        k = len(yy)
+        idx = (self._n + np.arange(k)) % WINDOW
+        self._y[idx] = yy
+        self._s[idx] = ss
+        self._n += k
+        self._since += k
+        if self._since >= REFIT_EVERY:
+            self._refit()
+
+    def _refit(self) -> None:
+        n = min(self._n, WINDOW)
+        self.model = fit_nlos_mixture(self._y[:n], self._s[:n], self.prior, PRIOR_RANGES)
+        self.q = float(np.clip(
+            (self._switch_sum + PRIOR_RANGES * self.q0) / (self._switch_n + PRIOR_RANGES),
+            1e-3, 0.5))
+        if self.refine_scale:
+            self.scale = ((self._sxy + self.scale_precision * self._scale0)
+                          / (self._sxx + self.scale_precision))
+        self._since = 0
+        self.refits += 1
+
+    def report(self) -> dict[str, float | int]:
+        """The fitted model (m, share) and switching rate."""
+        m: NlosParams = self.model
+        return {
+            "los_std": round(m.los_std, 4), "nlos_mean": round(m.nlos_mean, 4),
+            "nlos_std": round(m.nlos_std, 4), "nlos_share": round(m.nlos_prior, 3),
+            "nlos_switch": round(self.q, 4), "range_scale": round(self.scale, 5),
+            "refits": self.refits,
+        }
+
+
+class InnovationVariance:
+    """Running covariance-matching estimate of K measurement variances (see module doc)."""
+
+    def __init__(self, prior: F64) -> None:
+        self.prior = np.asarray(prior, dtype=np.float64).copy()
+        self.r = self.prior.copy()
+        self._num = np.zeros(len(self.prior))
+        self._den = np.zeros(len(self.prior))
+
+    def update(self, y: F64, s: F64) -> None:
+        """Add rows: innovations y (N, K) and their prediction variances s (N, K)."""
+        y = np.asarray(y).reshape(-1, len(self.r))
+        s = np.asarray(s).reshape(-1, len(self.r))
+        n = len(y)
+        if n == 0:
+            return
+        decay = (1.0 - 1.0 / MEMORY_ROWS) ** n
+        self._num = decay * self._num + np.sum(np.maximum(y * y - s, 0.0), axis=0)
+        self._den = decay * self._den + n
+        r = (self._num + PRIOR_ROWS * self.prior) / (self._den + PRIOR_ROWS)
+        self.r = np.maximum(r, MIN_SHARE * self.prior)
+
+
+def scalar_update(
+    p: F64, dx: F64, h: F64, y: float, r: float
+) -> tuple[F64, F64, float]:
+    """One scalar Kalman update on top of the correction dx accumulated so far.
+
+    p (n,n) covariance, dx (n,) correction so far, h (n,) Jacobian row, y the innovation at
+    dx (m), r its variance. Joseph-form covariance (written for one row:
+    P - k ph^T - ph k^T + S k k^T). Returns the new P, dx and S = h P h^T + r.
+    """
+    ph = p @ h
+    s = float(h @ ph) + r
+    k = ph / s
+    kp = np.outer(k, ph)
+    p_new = p - kp - kp.T + s * np.outer(k, k)
+    return p_new, dx + k * y, s
+
+
+def sequential_ranges(
+    noise: RangeNoise, p: F64, dx: F64, h: F64, y: F64, anchor: np.ndarray, rng: F64,
+) -> tuple[F64, F64, np.ndarray, F64]:
+    """Sequential robust scalar updates of M ranges rng (M,) m (rows h (M,n), innovations
+    y (M,) at dx = 0) in their order. Each range is weighed (`RangeNoise.weigh`) on the innovation
+    and prediction variance left after the ranges before it. Returns P, dx, the accepted
+    mask (M,) and the NIS (M,)."""
+    used = np.zeros(len(y), dtype=bool)
+    nis = np.zeros(len(y))
+    for i in range(len(y)):
+        hi = h[i]
+        yi = float(y[i] - hi @ dx)
+        si = float(hi @ p @ hi)
+        a = anchor[i : i + 1]
+        yc, var, ok, z = noise.weigh(a, np.array([yi]), np.array([si]))
+        nis[i] = z[0]
+        if ok[0]:
+            p, dx, _ = scalar_update(p, dx, hi, float(yc[0]), float(var[0]))
+            used[i] = True
+        noise.accept(a, np.array([yi]), np.array([si]), ok, rng[i : i + 1])
+    return 0.5 * (p + p.T), dx, used, nis
+
