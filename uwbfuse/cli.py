@@ -25,6 +25,8 @@ EXAMPLES = """examples:
   uwbfuse run warehouse.mcap --method isam2 -o est.tum
   uwbfuse eval est.tum --gt warehouse.mcap
   uwbfuse compare warehouse.mcap --methods isam2,batch,ekf --out results/
+  uwbfuse simulate fleet.mcap --scenario warehouse-fleet --duration 60
+  uwbfuse collisions fleet.agv0.mcap fleet.agv1.mcap --method isam2 --out coll/
   uwbfuse dump-config > uwbfuse.toml
 """
 
@@ -59,7 +61,11 @@ def _version() -> str:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.sim.fleet import get_fleet
     from uwbfuse.sim.simulator import simulate
+
+    if get_fleet(args.scenario) is not None:
+        return _simulate_fleet(args)
 
     sim = simulate(args.scenario, duration_s=args.duration, seed=args.seed)
     write_contract_log(args.out, sim)
@@ -69,6 +75,18 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         f"{len(sim.imu or [])} imu, {len(sim.wheel or [])} wheel, "
         f"{len(sim.ranges or [])} ranges, {len(sim.anchors or [])} anchors"
     )
+    return 0
+
+
+def _simulate_fleet(args: argparse.Namespace) -> int:
+    from uwbfuse.sim.fleet import write_fleet
+
+    sims, files = write_fleet(args.out, args.scenario, args.duration, args.seed)
+    print(f"wrote {len(sims)} logs: scenario {args.scenario}, {args.duration:.1f} s, "
+          "one per AGV on a common clock")
+    for (name, res), path in zip(sims, files, strict=False):
+        print(f"  {name}: {path} (starts after {res.scenario.still_start_s:.1f} s)")
+    print(f"  map: {files[-1]} (the [map] for uwbfuse collisions on TUM files)")
     return 0
 
 
@@ -216,6 +234,24 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_collisions(args: argparse.Namespace) -> int:
+    from uwbfuse.safety.command import collisions
+
+    _quiet_dask(args)
+    res = collisions(
+        args.inputs, args.config, names=args.names.split(",") if args.names else None,
+        out_dir=args.out, method=args.method,
+        cov_paths=args.cov.split(",") if args.cov is not None else None,
+        scheduler=args.scheduler, workers=args.workers,
+    )
+    print(res.table(), end="")
+    n_col = sum(e["kind"] == "collision" for e in res.events)
+    print(f"{len(res.tracks)} vehicles, map from {res.map_source}: {len(res.events)} events "
+          f"({n_col} collision, {len(res.events) - n_col} warning epochs) in "
+          f"{res.wall_s:.1f} s; wrote {', '.join(str(f) for f in res.files)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="uwbfuse",
@@ -312,6 +348,24 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--gt", metavar="GT.tum", help="ground truth, if not in the log")
     n.add_argument("-o", "--output", metavar="OUT.toml", help="default: stdout")
     n.set_defaults(func=_cmd_calibrate_nlos)
+
+    k = sub.add_parser(
+        "collisions", help="predict collisions of vehicles with the map and each other",
+        description="Predict each vehicle's footprint over [t, t + control_delay] (constant "
+        "velocity and turn rate) and report warnings and collisions against the map "
+        "([map], or a log's map_obstacles) and among the vehicles.",
+    )
+    k.add_argument("inputs", nargs="+", metavar="EST.tum",
+                   help="one trajectory per vehicle (TUM), or logs with --method")
+    k.add_argument("--config", metavar="FILE", help="[map] and [vehicle]")
+    k.add_argument("--names", metavar="A,B,...", help="vehicle names (default: file stems)")
+    k.add_argument("--out", default="collisions_out", metavar="DIR")
+    k.add_argument("--method", help="estimate logs given as inputs first: " + METHOD_HELP)
+    k.add_argument("--cov", metavar="C1.csv,...",
+                   help="--cov-out CSV per trajectory, in order ('' for none)")
+    k.add_argument("--scheduler", metavar="ADDRESS", help=SCHEDULER_HELP)
+    k.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
+    k.set_defaults(func=_cmd_collisions)
 
     d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
     d.set_defaults(func=_cmd_dump_config)

@@ -23,6 +23,7 @@ from uwbfuse.errors import ConfigError, UwbfuseError
 from uwbfuse.estimator import Method, RangeClasses
 from uwbfuse.eval.evaluate import EvalResult, RpeResult, evaluate
 from uwbfuse.io.atomic import write_atomic
+from uwbfuse.methods import by_reference_rank
 from uwbfuse.progress import ProgressFn
 from uwbfuse.streams import PoseStream, SensorLog
 from uwbfuse.suggest import did_you_mean
@@ -284,7 +285,7 @@ def _gt_in_map_frame(log_data: SensorLog, rows: list[MethodRow]) -> SensorLog:
 
     gt = log_data.ground_truth
     scored = {r.method: r for r in rows if r.metrics is not None}
-    order = ["batch", "isam2-smoothed", "isam2", "ekf", "ukf", "lkf", "wls"]
+    order = [m.value for m in by_reference_rank()]
     pick = next((scored[m] for m in order if m in scored), None)
     if gt is None or pick is None:
         return log_data

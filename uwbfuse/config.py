@@ -320,6 +320,96 @@ class OutputConfig(_Section):
     rate: float = Field(10.0, gt=0, description="output poses per second for filters, Hz")
 
 
+Point2 = tuple[float, float]
+
+
+def check_polygon(name: str, vertices: list[Point2]) -> None:
+    """Raise ValueError unless `vertices` (implicitly closed) bound a simple polygon."""
+    from shapely import Polygon
+
+    pts = list(vertices)
+    if len(pts) > 1 and pts[0] == pts[-1]:
+        pts = pts[:-1]  # written closed: the last vertex repeats the first
+    if len(pts) < 3:
+        raise ValueError(f"{name} is not a closed polygon: {len(pts)} distinct vertices, "
+                         "needs >= 3")
+    if not all(math.isfinite(c) for xy in pts for c in xy):
+        raise ValueError(f"{name} has a non-finite vertex")
+    poly = Polygon(pts)
+    if not poly.convex_hull.area > 0:
+        raise ValueError(f"{name} does not enclose an area (its vertices are on one line)")
+    if not poly.exterior.is_simple:
+        raise ValueError(f"{name} is self-intersecting (its edges cross or touch)")
+
+
+class MapConfig(_Section):
+    obstacles: list[list[Point2]] = Field(
+        default_factory=list, description="obstacle polygons [[x, y], ...] (>= 3 vertices, "
+        "not self-intersecting, closed implicitly), metres, map frame"
+    )
+    walls: list[list[Point2]] = Field(
+        default_factory=list, description="walls as polylines [[x, y], ...] (>= 2 vertices, "
+        "no thickness), metres, map frame"
+    )
+    boundary: list[Point2] = Field(
+        default_factory=list, description="optional hall outline polygon the vehicles must "
+        "stay inside ([] = none), metres, map frame"
+    )
+
+    @field_validator("obstacles")
+    @classmethod
+    def _simple_obstacles(cls, v: list[list[Point2]]) -> list[list[Point2]]:
+        for i, poly in enumerate(v):
+            check_polygon(f"obstacle {i}", poly)
+        return v
+
+    @field_validator("walls")
+    @classmethod
+    def _walls(cls, v: list[list[Point2]]) -> list[list[Point2]]:
+        for i, line in enumerate(v):
+            if len(line) < 2 or not all(math.isfinite(c) for xy in line for c in xy):
+                raise ValueError(f"wall {i} needs >= 2 finite vertices")
+        return v
+
+    @field_validator("boundary")
+    @classmethod
+    def _boundary(cls, v: list[Point2]) -> list[Point2]:
+        if v:
+            check_polygon("boundary", v)
+        return v
+
+
+class VehicleConfig(_Section):
+    length: float = Field(1.0, gt=0, description="footprint length along base x, m")
+    width: float = Field(0.6, gt=0, description="footprint width along base y, m")
+    footprint_center: tuple[float, float] = Field(
+        (0.0, 0.0), description="footprint centre in the base frame (x, y), m"
+    )
+    control_delay: float = Field(
+        0.5, ge=0, description="prediction horizon: the vehicle keeps its current velocity "
+        "and turn rate this long, s"
+    )
+    safety_margin: float = Field(
+        0.2, ge=0, description="clearance below which a warning is raised, m"
+    )
+    sigma_factor: float = Field(
+        2.0, ge=0, description="the margin is widened by this many position std "
+        "(largest xy std of the pose covariance, where one is known)"
+    )
+    position_sigma: float = Field(
+        0.0, ge=0, description="position std assumed where no covariance is known, m "
+        "(0 = no widening without a covariance)"
+    )
+    velocity_window: float = Field(
+        0.5, gt=0, description="past trajectory window whose line fit gives the velocity "
+        "and yaw rate (causal), s"
+    )
+    prediction_steps: int = Field(
+        5, ge=1, description="time slots the horizon is split into (swept area and time "
+        "to contact are resolved to control_delay / prediction_steps)"
+    )
+
+
 class Config(_Section):
     """The whole configuration. `anchors` may stay empty when the log carries them."""
 
@@ -337,6 +427,8 @@ class Config(_Section):
     ukf: UkfConfig = Field(default_factory=UkfConfig)
     wls: WlsConfig = Field(default_factory=WlsConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    map: MapConfig = Field(default_factory=MapConfig)
+    vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
 
     @field_validator("anchors")
     @classmethod

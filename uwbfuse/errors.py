@@ -44,3 +44,8 @@ class SimulationError(UwbfuseError):
 
 class FleetError(UwbfuseError):
     """A batch or Monte Carlo study cannot run: no dask, unreachable scheduler, no workers."""
+
+
+class CollisionCheckError(UwbfuseError):
+    """A collision check cannot run: bad map or footprint, trajectories too short or not
+    overlapping in time."""

@@ -16,30 +16,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any, Protocol
 
 import numpy as np
 
+from uwbfuse.methods import Method  # noqa: F401  (re-exported: the public name's old home)
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, SensorLog
-
-
-class Method(StrEnum):
-    """Estimation methods of `uwbfuse run --method`."""
-
-    ISAM2 = "isam2"
-    ISAM2_SMOOTHED = "isam2-smoothed"
-    BATCH = "batch"
-    EKF = "ekf"
-    UKF = "ukf"
-    WLS = "wls"
-    LKF = "lkf"
-    IMU = "imu"
-    ODOM = "odom"
-
-    @property
-    def uses_ranges(self) -> bool:
-        return self not in (Method.IMU, Method.ODOM)
 
 
 @dataclass(frozen=True)

@@ -1,65 +1,114 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""Registry of estimation methods: `Method` -> factory, imported lazily.
+"""The registry of estimation methods: what each needs, what it writes, how it is scored.
 
-Each factory module exposes `make(method, config, anchors, streams) -> Estimator`, where
-`streams` is the set of sensor streams the log has ({"imu", "wheel", "uwb"}). Lazy imports
-keep `uwbfuse --help` and the I/O commands free of GTSAM start-up cost.
+`METHODS` holds one `MethodSpec` per `Method`: its implementation module (imported lazily,
+so `uwbfuse --help` and the I/O commands start without GTSAM), the sensor streams it needs,
+whether it uses ranges (and so an anchor map), whether its output is a smoothed final
+trajectory, whether it classifies ranges LOS/NLOS, and its rank as a reference (tables,
+plots and alignments take the best-ranked method present). Each implementation module
+exposes `make(method, config, anchors, streams) -> Estimator`, where `streams` is the set of
+sensor streams the log has ({"imu", "wheel", "uwb"}).
 """
 
 from __future__ import annotations
 
 import importlib
 import importlib.util
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import TYPE_CHECKING
 
 from uwbfuse.config import Config
-from uwbfuse.estimator import Estimator, Method
 from uwbfuse.streams import AnchorMap
 
-_FACTORY_MODULES: dict[Method, str] = {
-    Method.IMU: "uwbfuse.filters.dead_reckoning",
-    Method.ODOM: "uwbfuse.filters.dead_reckoning",
-    Method.ISAM2: "uwbfuse.graph.estimator",
-    Method.ISAM2_SMOOTHED: "uwbfuse.graph.estimator",
-    Method.BATCH: "uwbfuse.graph.estimator",
-    Method.EKF: "uwbfuse.filters.ekf",
-    Method.UKF: "uwbfuse.filters.ukf",
-    Method.WLS: "uwbfuse.filters.wls",
-    Method.LKF: "uwbfuse.filters.lkf",
+if TYPE_CHECKING:
+    from uwbfuse.estimator import Estimator
+
+
+class Method(StrEnum):
+    """Estimation methods of `uwbfuse run --method`."""
+
+    ISAM2 = "isam2"
+    ISAM2_SMOOTHED = "isam2-smoothed"
+    BATCH = "batch"
+    EKF = "ekf"
+    UKF = "ukf"
+    WLS = "wls"
+    LKF = "lkf"
+    IMU = "imu"
+    ODOM = "odom"
+
+    @property
+    def spec(self) -> MethodSpec:
+        return METHODS[self]
+
+    @property
+    def uses_ranges(self) -> bool:
+        return METHODS[self].uses_ranges
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """What the pipeline, tables and plots need to know of one method."""
+
+    module: str  # implementation module (its `make` builds the estimator)
+    required: frozenset[str]  # streams it cannot do without
+    uses_ranges: bool = True  # ranges, and so an anchor map (dead reckoning: neither)
+    # streams with which a ranging method also runs on a log without ranges (no anchor map:
+    # it starts at the map origin, heading zero), None: it needs the ranges
+    without_ranges: frozenset[str] | None = None
+    smoothed: bool = False  # writes its final (smoothed) trajectory, not the causal one
+    classifies_ranges: bool = False  # reports a per-range LOS/NLOS classification
+    # rank as a reference (0 best): residuals without ground truth, the plots' frame
+    reference_rank: int | None = None
+
+
+_GRAPH = "uwbfuse.graph.estimator"
+_UWB = frozenset({"uwb"})
+_IMU_WHEEL = frozenset({"imu", "wheel"})
+METHODS: dict[Method, MethodSpec] = {
+    Method.BATCH: MethodSpec(_GRAPH, _UWB, smoothed=True, classifies_ranges=True,
+                             reference_rank=0),
+    Method.ISAM2_SMOOTHED: MethodSpec(_GRAPH, _UWB, smoothed=True, classifies_ranges=True,
+                                      reference_rank=1),
+    Method.ISAM2: MethodSpec(_GRAPH, _UWB, classifies_ranges=True, reference_rank=2),
+    Method.EKF: MethodSpec("uwbfuse.filters.ekf", _UWB, without_ranges=_IMU_WHEEL,
+                           reference_rank=3),
+    Method.UKF: MethodSpec("uwbfuse.filters.ukf", _UWB, without_ranges=_IMU_WHEEL,
+                           reference_rank=4),
+    Method.LKF: MethodSpec("uwbfuse.filters.lkf", _UWB, reference_rank=5),
+    Method.WLS: MethodSpec("uwbfuse.filters.wls", _UWB, reference_rank=6),
+    Method.IMU: MethodSpec("uwbfuse.filters.dead_reckoning", frozenset({"imu"}),
+                           uses_ranges=False),
+    Method.ODOM: MethodSpec("uwbfuse.filters.dead_reckoning", frozenset({"wheel"}),
+                            uses_ranges=False),
 }
 
-# Which sensor streams each method cannot do without.
-REQUIRED_STREAMS: dict[Method, frozenset[str]] = {
-    Method.IMU: frozenset({"imu"}),
-    Method.ODOM: frozenset({"wheel"}),
-    Method.WLS: frozenset({"uwb"}),
-    Method.LKF: frozenset({"uwb"}),
-    Method.EKF: frozenset({"uwb"}),
-    Method.UKF: frozenset({"uwb"}),
-    Method.ISAM2: frozenset({"uwb"}),
-    Method.ISAM2_SMOOTHED: frozenset({"uwb"}),
-    Method.BATCH: frozenset({"uwb"}),
-}
-
-# Streams with which a ranging method also runs on a log without UWB ranges (no anchor map
-# needed): the Kalman filters then fuse IMU and wheels from the map origin, heading zero.
+# Which sensor streams each method cannot do without, and what a ranging method runs on
+# without ranges (views of `METHODS`).
+REQUIRED_STREAMS: dict[Method, frozenset[str]] = {m: s.required for m, s in METHODS.items()}
 WITHOUT_RANGES: dict[Method, frozenset[str]] = {
-    Method.EKF: frozenset({"imu", "wheel"}),
-    Method.UKF: frozenset({"imu", "wheel"}),
-}
+    m: s.without_ranges for m, s in METHODS.items() if s.without_ranges is not None}
+
+
+def by_reference_rank(methods: list[Method] | None = None, *,
+                      classifying: bool = False) -> list[Method]:
+    """Ranked methods, best reference first (of `methods`, default all); `classifying`:
+    only those that classify ranges."""
+    pool = list(METHODS) if methods is None else methods
+    ranked = [m for m in pool if METHODS[m].reference_rank is not None
+              and (METHODS[m].classifies_ranges or not classifying)]
+    return sorted(ranked, key=lambda m: METHODS[m].reference_rank)
 
 
 def available_methods() -> list[Method]:
     """Methods whose implementation module is importable in this installation."""
-    out = []
-    for m, mod in _FACTORY_MODULES.items():
-        if importlib.util.find_spec(mod) is not None:
-            out.append(m)
-    return out
+    return [m for m, s in METHODS.items() if importlib.util.find_spec(s.module) is not None]
 
 
 def make_estimator(
     method: Method, config: Config, anchors: AnchorMap | None, streams: frozenset[str]
 ) -> Estimator:
     """Build the estimator for `method` (streams: which sensors the log has)."""
-    module = importlib.import_module(_FACTORY_MODULES[method])
+    module = importlib.import_module(METHODS[method].module)
     return module.make(method, config, anchors, streams)

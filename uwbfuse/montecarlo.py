@@ -59,7 +59,6 @@ log = logging.getLogger(__name__)
 DEFAULT_TIMES_S: tuple[float, ...] = (20.0, 100.0, 150.0, 200.0)
 """Times after the log start at which errors are collected (Qiu 2022, Table 5), s."""
 
-DEAD_RECKONING = frozenset({Method.IMU, Method.ODOM})
 
 
 class StartAlignment(StrEnum):
@@ -72,7 +71,7 @@ class StartAlignment(StrEnum):
 
     def applies_to(self, method: Method) -> bool:
         return self is StartAlignment.FIRST or (
-            self is StartAlignment.AUTO and method in DEAD_RECKONING
+            self is StartAlignment.AUTO and not method.uses_ranges
         )
 
 DONE_FORMAT = 1

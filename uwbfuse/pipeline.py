@@ -143,7 +143,7 @@ def estimate(
         estimator = WithFallback(estimator, fallback)
     epochs = output_epochs(sensors_only, config.output.rate)
     res = run_streaming(estimator, sensors_only, epochs, progress)
-    smoothed = method in (Method.ISAM2_SMOOTHED, Method.BATCH)
+    smoothed = method.spec.smoothed
     if smoothed and res.final is None and len(res.causal) == 0:
         raise EstimatorError(_never_initialised(log, method))
     if smoothed and res.final is None:

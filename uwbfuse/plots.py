@@ -27,6 +27,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.eval.metrics import wrap_angle, yaw_of
+from uwbfuse.methods import by_reference_rank
 from uwbfuse.streams import NS_PER_S, PoseStream, SensorLog
 
 if TYPE_CHECKING:
@@ -51,10 +52,10 @@ isam2-smoothed on batch, lkf on wls), so both stay visible."""
 OTHER_COLOR = "#BBBBBB"
 GT_STYLE: dict[str, Any] = {"c": "#555555", "lw": 3.0, "alpha": 0.45, "zorder": 1}
 NLOS_STYLE: dict[str, Any] = {"marker": "x", "c": "black", "linewidths": 0.9, "zorder": 6}
-# Smoothers are the best reference for residuals when the log has no ground truth.
-_REFERENCE_ORDER = ("batch", "isam2-smoothed", "isam2", "ekf", "ukf")
-# Whose NLOS classification the plots show, best informed first (batch: final EM).
-_CLASSIFIER_ORDER = ("batch", "isam2-smoothed", "isam2")
+# The best reference for residuals when the log has no ground truth (smoothers first), and
+# whose NLOS classification the plots show, best informed first: the registry's ranks.
+_REFERENCE_ORDER = tuple(m.value for m in by_reference_rank())
+_CLASSIFIER_ORDER = tuple(m.value for m in by_reference_rank(classifying=True))
 ZOOM_ERROR_MULTIPLE = 10.0
 """Zoom window side in multiples of the typical method error (median over the methods of
 their 90th percentile): errors then take a tenth of the window, enough to see which track

@@ -19,9 +19,13 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from uwbfuse.config import MapConfig
 
 NS_PER_S = 1_000_000_000
 
@@ -182,7 +186,8 @@ class ReadReport:
 class SensorLog:
     """Everything an estimator may use from one log, plus ground truth for evaluation only.
 
-    Estimators must never read `ground_truth`.
+    Estimators must never read `ground_truth`. `map` is the electronic map for collision
+    prediction (the config's `[map]`, else the log's `map_obstacles` metadata), or None.
     """
 
     imu: ImuStream | None = None
@@ -192,6 +197,7 @@ class SensorLog:
     ground_truth: PoseStream | None = None
     source: str = ""
     report: ReadReport = field(default_factory=ReadReport)
+    map: MapConfig | None = None
 
     def time_span_ns(self) -> tuple[int, int]:
         """First and last stamp over the sensor streams (ground truth excluded)."""

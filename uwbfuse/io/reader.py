@@ -24,15 +24,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
-from uwbfuse.config import Config
+from uwbfuse.config import Config, MapConfig
 from uwbfuse.errors import LogReadError
 from uwbfuse.io import cdr_fast, msgdefs, ros2msg
 from uwbfuse.io.decoders import DecoderUnavailable, generic_decoder
 from uwbfuse.io.fields import MissingField, anchor_key, get_path, has_path, is_valid, stamp_ns
 from uwbfuse.io.mcap_raw import MessageRefs, RawChannel, ScanResult
 from uwbfuse.io.rosbag2 import scan_log
-from uwbfuse.io.writer import ANCHORS_METADATA
+from uwbfuse.io.writer import ANCHORS_METADATA, MAP_METADATA
 from uwbfuse.streams import (
     AnchorMap,
     ImuStream,
@@ -553,6 +554,33 @@ def _metadata_anchors(source: str, scans: list[ScanResult]) -> AnchorMap | None:
     return None
 
 
+def _metadata_map(source: str, scans: list[ScanResult]) -> MapConfig | None:
+    """The `map_obstacles` record (obstacle id -> JSON "[[x, y], ...]") as a `[map]`."""
+    for scan in scans:
+        for name, data in scan.metadata:
+            if name != MAP_METADATA:
+                continue
+            try:
+                polys = [json.loads(v) for v in data.values()]
+                return MapConfig(obstacles=polys)
+            except ValidationError as e:
+                why = e.errors()[0]["msg"].removeprefix("Value error, ")
+            except ValueError as e:  # not JSON
+                why = str(e)
+            raise LogReadError(
+                f"{source}: metadata record {MAP_METADATA!r}: expected obstacle id -> JSON "
+                f"array of >= 3 [x, y] vertices: {why}")
+    return None
+
+
+def _log_map(source: str, scans: list[ScanResult], config: Config) -> MapConfig | None:
+    """The config's `[map]` when it has anything, else the log's metadata record."""
+    m = config.map
+    if m.obstacles or m.walls or m.boundary:
+        return m
+    return _metadata_map(source, scans)
+
+
 def _role_topics(config: Config) -> dict[str, list[str]]:
     topics = {IMU: config.topics.imu, WHEEL: config.topics.wheel_odom, UWB: config.topics.uwb,
               GT: config.topics.ground_truth}
@@ -616,6 +644,7 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
         ground_truth=_gt_stream(roles[GT], topics.ground_truth, report),
         source=source,
         report=report,
+        map=_log_map(source, scans, config),
     )
     for line in report.lines():
         log.debug("%s: %s", source, line)

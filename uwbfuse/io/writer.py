@@ -29,6 +29,7 @@ from uwbfuse.io.mcap_write import ChannelDef, SchemaDef, write_mcap
 from uwbfuse.streams import AnchorMap, SensorLog
 
 ANCHORS_METADATA = "uwb_anchors"
+MAP_METADATA = "map_obstacles"
 LIBRARY = "uwbfuse"
 
 _COMPRESSION = ("zstd", "lz4", "none")
@@ -45,6 +46,15 @@ def anchors_record(anchors: AnchorMap) -> dict[str, str]:
 def anchors_metadata(log: SensorLog) -> dict[str, str]:
     """The `uwb_anchors` record of `log` (empty without an anchor map)."""
     return {} if log.anchors is None else anchors_record(log.anchors)
+
+
+def map_metadata(log: SensorLog) -> dict[str, str]:
+    """The `map_obstacles` record: obstacle id -> JSON array "[[x, y], ...]" (metres, map
+    frame), from `log.map` (its obstacle polygons)."""
+    if log.map is None:
+        return {}
+    return {f"obstacle{i}": json.dumps([[float(x), float(y)] for x, y in poly])
+            for i, poly in enumerate(log.map.obstacles)}
 
 
 def _encode_streams(
@@ -103,8 +113,10 @@ def write_contract_log(
     every = [d for s in streams for d in s[3]]
     datas = [every[i] for i in order.tolist()]
     meta = anchors_metadata(log)
+    obstacles = map_metadata(log)
     with atomic_open(path, "wb", error=LogWriteError, what="log", fsync=True) as f:
         write_mcap(f, schemas=schemas, channels=channels, channel=which[order],
                    log_time=stamps[order], datas=datas,
-                   metadata=[(ANCHORS_METADATA, meta)] if meta else [],
+                   metadata=([(ANCHORS_METADATA, meta)] if meta else [])
+                   + ([(MAP_METADATA, obstacles)] if obstacles else []),
                    library=LIBRARY, compression=compression, chunk_size=chunk_size)

@@ -43,7 +43,7 @@ from uwbfuse.streams import AnchorMap, SensorLog
 F64 = NDArray[np.float64]
 
 _MIN_LOS_STD = 0.005  # floor on the LOS std used for probabilities, m
-_MAX_LOS_STD = 0.15  # upper bound of a fitted LOS std, m
+_MAX_LOS_STD = 1.0  # m: a fitted LOS std beyond this is no UWB radio's (Plaza's read 0.3-0.5)
 
 
 @dataclass(frozen=True)

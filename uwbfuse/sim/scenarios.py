@@ -57,6 +57,7 @@ class Scenario:
     route: tuple[Primitive, ...]  # closed loop, driven repeatedly
     start: tuple[float, float, float]  # route start: x m, y m, yaw rad (map frame)
     static_points: tuple[tuple[float, float], ...] = ()  # where the route dwells, m
+    map_boxes: tuple[Box, ...] = ()  # mapped obstacles too low to block UWB (pallets)
 
     # vehicle
     speed: float = 0.5  # cruise speed, m/s

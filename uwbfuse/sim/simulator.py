@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from uwbfuse.config import MapConfig
 from uwbfuse.errors import SimulationError
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
 from uwbfuse.sim.sensors import imu_samples, uwb_ranges, wheel_samples
@@ -104,6 +105,13 @@ def _validate(sc: Scenario, duration_s: float) -> None:
         raise SimulationError(f"streams must be a non-empty subset of imu, wheel, uwb: {bad}")
 
 
+def site_map(sc: Scenario) -> MapConfig:
+    """The scenario's electronic map: its shelves (boxes) and mapped low obstacles."""
+    return MapConfig(obstacles=[
+        [(b.xmin, b.ymin), (b.xmax, b.ymin), (b.xmax, b.ymax), (b.xmin, b.ymax)]
+        for b in (*sc.boxes, *sc.map_boxes)])
+
+
 def _to_ns(t0_ns: int, t_s: F64) -> NDArray[np.int64]:
     return t0_ns + np.round(t_s * NS_PER_S).astype(np.int64)
 
@@ -171,6 +179,7 @@ def simulate_with_truth(
         anchors=anchors,
         ground_truth=PoseStream(t_imu_ns, pos, quat, True),
         source=f"simulated:{sc.name}:seed={seed}",
+        map=site_map(sc),
     )
     stills = _still_intervals(tl, duration_s)
     stills_ns = tuple((int(_to_ns(sc.t0_ns, np.array([a]))[0]),
