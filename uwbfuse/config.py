@@ -322,7 +322,10 @@ class GraphConfig(_Section):
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"
     )
     marginal_covariances: bool = Field(
-        False, description="batch: write marginal covariances beside the trajectory"
+        True, description="pose covariances of isam2, isam2-smoothed and batch from the "
+        "graph's marginals (the trajectory's covariance, written by --cov-out and "
+        "--mcap-out); false = skip them (saves one marginal per update online and the "
+        "marginals of the final graph in batch) and report the poses' covariance unknown"
     )
 
 

@@ -182,7 +182,9 @@ class WithFallback:
             last = self._last_provisional
             if last is not None and (fb is None or (self._discredited and (
                     t_ns - self._silent_since < self.PROVISIONAL_GRACE_S * NS_PER_S))):
-                self._current = PoseEstimate(t_ns, last.position, last.quat_xyzw)
+                # the held pose keeps the provisional fix's covariance (None: unknown)
+                self._current = PoseEstimate(t_ns, last.position, last.quat_xyzw,
+                                             last.covariance)
                 self.held_epochs += 1
                 return
             self._current = fb

@@ -20,7 +20,7 @@ from uwbfuse.errors import AnchorMapError, EstimatorError, TrajectoryFileError
 from uwbfuse.estimator import Method, RangeClasses, WithFallback, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, WITHOUT_RANGES, make_estimator
 from uwbfuse.progress import ProgressFn
-from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
+from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +110,21 @@ def _never_initialised(log: SensorLog, method: Method) -> str:
     return f"{msg}: {len(log.ranges)} ranges from {len(heard)} anchors ({ids})"
 
 
+def _splice_covariance(causal: PoseStream, head: np.ndarray,
+                       final: PoseStream) -> np.ndarray | None:
+    """Covariances of the causal head `causal[head]` then of `final` (ROS order, map
+    axes); the part without one gets `UNKNOWN_VARIANCE`, None when neither has any."""
+    if causal.covariance is None and final.covariance is None:
+        return None
+
+    def part(s: PoseStream, sel: np.ndarray | slice) -> np.ndarray:
+        if s.covariance is not None:
+            return s.covariance[sel]
+        return np.tile(np.eye(6) * UNKNOWN_VARIANCE, (len(s.t_ns[sel]), 1, 1))
+
+    return np.concatenate([part(causal, head), part(final, slice(None))])
+
+
 def estimate(
     log: SensorLog, method: Method, config: Config, progress: ProgressFn | None = None
 ) -> RunResult:
@@ -150,6 +165,7 @@ def estimate(
                 np.concatenate([res.causal.position[head], traj.position]),
                 np.concatenate([res.causal.quat_xyzw[head], traj.quat_xyzw]),
                 traj.has_orientation,
+                _splice_covariance(res.causal, head, traj),
             )
     if len(traj) == 0:
         raise EstimatorError(_never_initialised(log, method))

@@ -43,7 +43,13 @@ from uwbfuse.graph.uwb import (
     range_factor,
     residual_jumps_by_anchor,
 )
-from uwbfuse.graph.wheel import WheelTrack, between_factor, se2_between, se2_to_pose3
+from uwbfuse.graph.wheel import (
+    WheelTrack,
+    between_factor,
+    planar_covariance6,
+    se2_between,
+    se2_to_pose3,
+)
 from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.positioning.start import planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
@@ -445,6 +451,25 @@ class GraphBuilder:
         if t <= tk:
             return self.pose
         return self.pose.compose(self.delta(tk, np.array([t], np.int64), self.pose, self.vel)[0])
+
+    def motion_noise(self, t_a: int, t_b: int) -> np.ndarray:
+        """Pose3 tangent covariance (rot, trans) of the motion from t_a to t_b as `delta`
+        predicts it: the wheel track's propagated noise (the wheel factor's), else the
+        (real or constant-velocity virtual) IMU's white noise over the interval (rotation
+        sigma_g^2 tau, translation sigma_a^2 tau^3 / 3; the velocity's own uncertainty is
+        the caller's)."""
+        tau = max(t_b - t_a, 0) / NS_PER_S
+        if self.has_wheel and len(self.wheel):
+            oop = self.wheel_records.out_of_plane
+            cov = planar_covariance6(self.wheel.covariance(t_a, t_b, self.cfg.wheel), oop)
+            # out-of-plane sigmas are per keyframe interval
+            cov[[0, 1, 5], [0, 1, 5]] *= tau * self.g.keyframe_rate
+            return cov
+        if self.pim_params is not None:
+            sg = float(self.pim_params.getGyroscopeCovariance()[0, 0])
+            sa = float(self.pim_params.getAccelerometerCovariance()[0, 0])
+            return np.diag([sg * tau] * 3 + [sa * tau**3 / 3.0] * 3)
+        return np.eye(6) * 1e-12  # no motion model: the prediction is the keyframe
 
     # ---------------------------------------------------------------- factors
     def _planar_prior(self, k: int, pose: gtsam.Pose3) -> gtsam.NonlinearFactor:

@@ -48,7 +48,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method, PoseEstimate, RangeClasses
-from uwbfuse.graph import offline
+from uwbfuse.graph import covariance, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
@@ -62,7 +62,7 @@ from uwbfuse.graph.uwb import (
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.positioning.sparse_start import SparseStartInitialiser
-from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
+from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +126,16 @@ class GraphEstimator:
         self._hyp_count = 0
         self._batch_wall = 0.0
         self._static: PoseEstimate | None = None  # standstill fix before the start
+        # pose covariances (ROS order, map axes; `graph.marginal_covariances`): per keyframe
+        # as it left the window (isam2-smoothed), and the newest solved keyframe's
+        # (time, position, covariance, velocity covariance) that the causal output carries
+        self._with_cov = config.graph.marginal_covariances
+        self._kf_cov: dict[int, np.ndarray] = {}
+        self._head_cov: tuple[int, np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        self._cov_latency: list[float] = []
+        # the lag window's spread in map x, y over its LOS/NLOS assignments (m^2, from the
+        # review's `los_subset_search`), added to the marginals as batch adds its stretches'
+        self._shift_moment = np.zeros((2, 2))
 
     # ------------------------------------------------------------------ input
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
@@ -255,6 +265,7 @@ class GraphEstimator:
             if b.with_bias:
                 b.range_bias = np.array([sm.range_bias(a) for a in range(len(self.anchors))])
             self._read_nlos_states(sm, b)
+            self._save_head_covariance(sm, b)
             self._save_leaving(sm, b)
             self._review(sm, b)
         except (RuntimeError, ValueError) as exc:  # GTSAM raises both
@@ -331,6 +342,7 @@ class GraphEstimator:
             g_cur = np.concatenate([rb.g for rb in batches])
             u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
             hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+            self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
             better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                       and bool(np.any(hyp.los != hyp.current)))
             key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
@@ -400,7 +412,34 @@ class GraphEstimator:
                 self._kf_vel[k] = sm.velocity(k)
                 self._kf_bias[k] = sm.bias(k)
         except (RuntimeError, IndexError, ValueError):
-            pass  # not in this smoother (re-anchored): keep the earlier estimate if any
+            return  # not in this smoother (re-anchored): keep the earlier estimate if any
+        if self._with_cov and self.method is Method.ISAM2_SMOOTHED:
+            tic = time.perf_counter()
+            try:
+                rot = self._kf_pose[k].rotation().matrix()
+                cov = covariance.to_map(rot, sm.pose_covariance(k))
+                cov[:2, :2] += self._shift_moment
+                self._kf_cov[k] = cov
+            except (RuntimeError, IndexError, ValueError):
+                self._kf_cov.pop(k, None)  # no marginal: the pose goes out as unknown
+            self._cov_latency.append(time.perf_counter() - tic)
+
+    def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """isam2: the newest solved keyframe's marginal (plus the window's LOS/NLOS spread
+        in x, y), carried to each epoch by `estimate()`; its cost (one marginal per
+        update) is in `report()`."""
+        if not self._with_cov or self.method is not Method.ISAM2:
+            return
+        tic = time.perf_counter()
+        k = b.k
+        try:
+            cov = covariance.to_map(b.pose.rotation().matrix(), sm.pose_covariance(k))
+            cov[:2, :2] += self._shift_moment
+            vel = sm.velocity_covariance(k) if b.has_imu and not b.has_wheel else None
+            self._head_cov = (b.time_of(k), np.asarray(b.pose.translation()), cov, vel)
+        except (RuntimeError, IndexError, ValueError):
+            self._head_cov = None
+        self._cov_latency.append(time.perf_counter() - tic)
 
     def _reanchor(self, reason: str) -> None:
         """Restart the smoother at the newest keyframe with loose priors (never raises)."""
@@ -424,6 +463,7 @@ class GraphEstimator:
         self._reviews.clear()
         self._review_inc = None
         self.smoother = OnlineSmoother(self.cfg.graph.lag)
+        self._head_cov = None
         inc = Increment()
         s = b.stamp(k)
         inc.graph.add(gtsam.PriorFactorPose3(
@@ -471,7 +511,22 @@ class GraphEstimator:
         if self._last_t is None:
             return None
         p = self.builder.predict(self._last_t)
-        return PoseEstimate(self._last_t, np.asarray(p.translation()), _quat_xyzw(p))
+        pos = np.asarray(p.translation())
+        return PoseEstimate(self._last_t, pos, _quat_xyzw(p),
+                            self._causal_covariance(self._last_t, p))
+
+    def _causal_covariance(self, t: int, pose: gtsam.Pose3) -> np.ndarray | None:
+        """The newest solved keyframe's covariance carried to `pose` at t by the motion
+        model's noise over the gap (`covariance.carry`), or None without one."""
+        if self._head_cov is None:
+            return None
+        b = self.builder
+        assert b is not None
+        t_k, p_k, cov_k, vel_cov = self._head_cov
+        noise = covariance.to_map(pose.rotation().matrix(), b.motion_noise(t_k, t))
+        if vel_cov is not None:  # IMU only: the keyframe velocity's error over the gap
+            noise[:3, :3] += vel_cov * ((t - t_k) / NS_PER_S) ** 2
+        return covariance.carry(cov_k, p_k, np.asarray(pose.translation()), noise[None])[0]
 
     def _finalise_online(self) -> None:
         b, sm = self.builder, self.smoother
@@ -488,6 +543,7 @@ class GraphEstimator:
         self._finalise_online()
         b = self.builder
         n = b.k + 1
+        covs: np.ndarray | None = None
         if self.method is Method.BATCH:
             tic = time.perf_counter()
             self._run_batch()
@@ -495,6 +551,7 @@ class GraphEstimator:
             assert self._batch is not None
             vals = self._batch.values
             poses = [vals.atPose3(X(k)) for k in range(n)]
+            covs = self._batch_covariances(n)
         else:
             poses = [self._kf_pose.get(k) for k in range(n)]
             last = None
@@ -502,7 +559,30 @@ class GraphEstimator:
                 if poses[k] is None:
                     poses[k] = last if last is not None else b.pose
                 last = poses[k]
-        return self._interpolate(poses)
+            if self._with_cov:
+                unknown = np.eye(6) * UNKNOWN_VARIANCE
+                covs = np.array([self._kf_cov.get(k, unknown) for k in range(n)])
+        return self._interpolate(poses, covs)
+
+    def _batch_covariances(self, n: int) -> np.ndarray | None:
+        """Keyframe covariances from the marginals of `BatchResult.marginals`' graph (the
+        final LM round's factors at the solution, each range's weighted by the information
+        its LOS/NLOS ambiguity leaves) plus, in x, y, the spread of the track over the
+        stretches' LOS/NLOS assignments; None when off or singular."""
+        res = self._batch
+        if not self._with_cov or res is None or res.marginals is None:
+            return None
+        tic = time.perf_counter()
+        try:
+            graph, moment = res.marginals()
+            covs = covariance.keyframe_marginals(graph, res.values, n)
+            covs[:, :2, :2] += moment  # the LOS/NLOS assignments' spread in x, y
+        except RuntimeError as exc:  # indeterminant system: no covariance, said so
+            log.warning("batch: no pose covariance (marginals failed: %s)",
+                        str(exc).splitlines()[0] if str(exc) else "error")
+            covs = None
+        self._cov_latency.append(time.perf_counter() - tic)
+        return covs
 
     def _run_batch(self) -> None:
         b = self.builder
@@ -528,8 +608,12 @@ class GraphEstimator:
                                     wheel=b.wheel_records,
                                     online_verdict=b.prequential_verdict())
 
-    def _interpolate(self, poses: list[gtsam.Pose3]) -> PoseStream:
-        """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude)."""
+    def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
+        """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude).
+
+        Keyframe covariances `covs` (n,6,6, ROS order, map axes) blend linearly between
+        the two keyframes (`covariance.blend`); epochs after the last keyframe carry its
+        covariance by the motion model (`covariance.carry`)."""
         b = self.builder
         assert b is not None
         n = len(poses)
@@ -548,6 +632,7 @@ class GraphEstimator:
         p = (1 - f) * pos[k0] + f * pos[k1]
         q = (1 - f) * quat[k0] + f * quat[k1]
         q /= np.linalg.norm(q, axis=1, keepdims=True)
+        c = None if covs is None else covariance.blend(covs[k0], covs[k1], f[:, 0])
         # epochs after the last keyframe: odometry from the last keyframe
         late = np.flatnonzero(t > b.time_of(n - 1))
         if len(late):
@@ -556,14 +641,22 @@ class GraphEstimator:
                 pp = b.predict(int(t[i]))
                 p[i] = pp.translation()
                 q[i] = _quat_xyzw(pp)
-        return self._backfill(PoseStream(t, p, q, True), poses[0])
+                if c is not None and covs is not None:
+                    noise = covariance.to_map(pp.rotation().matrix(),
+                                              b.motion_noise(b.time_of(n - 1), int(t[i])))
+                    c[i] = covariance.carry(covs[-1], pos[-1], p[i], noise[None])[0]
+        return self._backfill(PoseStream(t, p, q, True, c), poses[0],
+                              None if covs is None else covs[0])
 
-    def _backfill(self, traj: PoseStream, first: gtsam.Pose3) -> PoseStream:
+    def _backfill(self, traj: PoseStream, first: gtsam.Pose3,
+                  first_cov: np.ndarray | None) -> PoseStream:
         """Offline outputs only: poses before the start from the wheel track, backwards.
 
         The start needs some motion, but the output should cover the log from the first
         motion; with wheels the relative track before the start is known, so the first
-        keyframe's smoothed pose carries it back. (IMU-only logs keep their start.)
+        keyframe's smoothed pose carries it back. (IMU-only logs keep their start.) Its
+        covariance `first_cov` (ROS order, map axes) is carried back likewise, with the
+        wheel noise of the track in between.
         """
         b = self.builder
         assert b is not None
@@ -577,13 +670,26 @@ class GraphEstimator:
         rel = se2_between(p0[None, :], self.wheel.at(t_pre))
         pos = np.empty((len(t_pre), 3))
         quat = np.empty((len(t_pre), 4))
+        cov = None if first_cov is None else np.empty((len(t_pre), 6, 6))
         for i, r in enumerate(rel):
-            pose = first.compose(se2_to_pose3(r))
+            delta = se2_to_pose3(r)
+            pose = first.compose(delta)
             pos[i] = pose.translation()
             quat[i] = _quat_xyzw(pose)
+            if cov is not None and first_cov is not None:
+                # the track's noise from t_pre to the first keyframe is in the tangent at
+                # the keyframe; the motion back (its inverse) has it at t_pre, turned by
+                # Ad(delta^-1)
+                ad = delta.inverse().AdjointMap()
+                noise = ad @ b.motion_noise(int(t_pre[i]), b.t0) @ ad.T
+                noise = covariance.to_map(pose.rotation().matrix(), noise)
+                cov[i] = covariance.carry(first_cov, np.asarray(first.translation()), pos[i],
+                                          noise[None])[0]
         return PoseStream(np.concatenate([t_pre, traj.t_ns]),
                           np.concatenate([pos, traj.position]),
-                          np.concatenate([quat, traj.quat_xyzw]), True)
+                          np.concatenate([quat, traj.quat_xyzw]), True,
+                          None if cov is None or traj.covariance is None
+                          else np.concatenate([cov, traj.covariance]))
 
     # ------------------------------------------------------------------ report
     def range_classes(self) -> RangeClasses | None:
@@ -599,7 +705,10 @@ class GraphEstimator:
                             np.asarray(w, dtype=np.float64))
 
     def report(self) -> dict[str, Any]:
-        """Outliers and bias per anchor, mixture parameters, update latency, re-anchors."""
+        """Outliers and bias per anchor, mixture parameters, update latency, re-anchors.
+
+        `covariance_ms`: time of the pose marginals, per update (isam2: the newest
+        keyframe's), per keyframe (isam2-smoothed) or once (batch: all keyframes)."""
         out: dict[str, Any] = {"method": self.method.value}
         out["standstill_fix_epochs"] = self.init.standstill_epochs
         b = self.builder
@@ -620,6 +729,11 @@ class GraphEstimator:
                 "max": float(lat.max() * 1e3),
                 "n": len(lat),
             }
+        if self._cov_latency:
+            cl = np.asarray(self._cov_latency)
+            out["covariance_ms"] = {"p50": float(np.percentile(cl, 50) * 1e3),
+                                    "p95": float(np.percentile(cl, 95) * 1e3),
+                                    "max": float(cl.max() * 1e3), "n": len(cl)}
         out["reanchor_events"] = list(self._reanchors)
         out["ranges_reclassified_online"] = self._n_reviewed
         out["los_hypothesis_switches"] = self._n_switches

@@ -114,6 +114,11 @@ class BatchResult:
     range_model: str = "mixture"  # the range error model fitted: mixture or robust
     # mean held-out log score (nats per range) of each candidate, when `auto` chose
     heldout_score: dict[str, float] | None = None
+    # builds, on demand (only the fit that is kept needs it), the graph whose marginals are
+    # the poses' covariance and the LOS/NLOS assignments' spread of each keyframe's
+    # position in map x, y (n_kf,2,2, m^2, `hypothesis_shift_moments`); None when
+    # `graph.marginal_covariances` is off
+    marginals: Callable[[], tuple[gtsam.NonlinearFactorGraph, np.ndarray]] | None = None
 
 
 # Wheel odometry scale calibration (batch). Encoders read the speed and the yaw rate with a
@@ -747,6 +752,28 @@ def _solve_em(
             h = predicted_ranges(values, rec, anchors, n_kf)
             r_los = rec["z"] - h - bias_values(values)[a_r]
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
+
+    def marginals() -> tuple[gtsam.NonlinearFactorGraph, np.ndarray]:
+        """The final LM round's graph, each range's factors scaled by the share of its
+        information that survives the LOS/NLOS ambiguity (`observed_information_share`),
+        and the assignments' spread (`hypothesis_shift_moments`)."""
+        graph = gtsam.NonlinearFactorGraph(static_graph(False))
+        if with_bias:
+            _cap_anchor_bias_sigma(graph, n_anchor, g_cfg.range_bias_anchor_sigma)
+        share = np.ones(len(g))
+        # the robust model has no classes: its every range counts as LOS (g = 0) against
+        # the mixture's NLOS alternative, with the LOS sigma it was fitted with
+        search_mix = copy.copy(mix)
+        search_mix.sigma_los = sig_l
+        moment = hypothesis_shift_moments(values, rec, anchors, n_kf, r_los, g, search_mix)
+        if states is not None and st_idx is not None:
+            e_fit = np.array([values.atDouble(k) for k in states.keys])
+            share = observed_information_share(r_los, rec["z"] - h - e_fit[st_idx], g,
+                                               sig_l, mix.sigma_nlos)
+        factors.add_to(graph, rec["z"], sig_l, (1.0 - g) * share,
+                       mix.sigma_nlos if states is not None else None, g * share)
+        return graph, moment
+
     nlos_out = None
     if states is not None:
         nlos_out = (states.anchor.copy(), states.seg.copy(),
@@ -755,7 +782,30 @@ def _solve_em(
                        nlos_first and states is not None,
                        None if wheel_scale is None else wheel_scale.applied.copy(),
                        nlos_states=nlos_out,
-                       range_model="mixture" if states is not None else "robust")
+                       range_model="mixture" if states is not None else "robust",
+                       marginals=marginals if g_cfg.marginal_covariances else None)
+
+
+def observed_information_share(
+    r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray, sigma_los: float,
+    sigma_nlos: float,
+) -> np.ndarray:
+    """Per range, the observed information of its two-component likelihood about the
+    predicted range over the information the EM-weighted factors give it, in [0, 1].
+
+    EM's factors carry the complete-data information (1 - g) / sigma_los^2 + g /
+    sigma_nlos^2, as if each range's LOS/NLOS class were known. The information the data
+    hold is smaller by the missing information, the variance of the score over the class
+    (Louis, 1982): g (1 - g) (r_los / sigma_los^2 - r_nlos / sigma_nlos^2)^2. Certain
+    classes (g near 0 or 1) lose nothing; an ambiguous range, whose class the fit could
+    have taken the other way, loses most of its weight in the marginals. Residuals in
+    metres at the solution (`r_nlos` against the range's NLOS state).
+    """
+    s_l = r_los / sigma_los**2
+    s_n = r_nlos / sigma_nlos**2
+    complete = (1.0 - g) / sigma_los**2 + g / sigma_nlos**2
+    missing = g * (1.0 - g) * (s_l - s_n) ** 2
+    return np.clip(1.0 - missing / complete, 0.0, 1.0)
 
 
 def _search_windows(
@@ -767,15 +817,7 @@ def _search_windows(
     BATCH_SEARCH_WINDOW_S stretch of the log, when another LOS/NLOS assignment of the
     anchors (with a rigid shift of the stretch's track) beats the current one by
     BATCH_SEARCH_NATS, the stretch's ranges are scored against that hypothesis instead."""
-    rot, trans = keyframe_arrays(values, n_kf)
-    k = rec["k"]
-    p = np.einsum("nij,nj->ni", rot[k], rec["tag_in_kf"]) + trans[k]
-    diff = p - anchors[a_r]
-    h = np.linalg.norm(diff, axis=1)
-    u = diff[:, :2] / np.maximum(h, 1e-6)[:, None]
-    t = rec["t_ns"]
-    w_ns = round(BATCH_SEARCH_WINDOW_S * NS_PER_S)
-    win = (t - t.min()) // w_ns
+    u, win = _search_geometry(values, rec, anchors, n_kf, a_r)
     ll_l, ll_n = ll_l.copy(), ll_n.copy()
     for w in np.unique(win).tolist():
         sel = np.flatnonzero(win == w)
@@ -787,6 +829,58 @@ def _search_windows(
         exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
         ll_l[sel], ll_n[sel] = mix.log_likelihoods(rl, rl - exc[a_r[sel]], e_var)
     return ll_l, ll_n
+
+
+def _search_geometry(
+    values: gtsam.Values, rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int,
+    a_r: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per range: the horizontal unit vector (N,2) from its anchor to the tag at `values`,
+    and its BATCH_SEARCH_WINDOW_S window index (N,) from the first range."""
+    rot, trans = keyframe_arrays(values, n_kf)
+    k = rec["k"]
+    p = np.einsum("nij,nj->ni", rot[k], rec["tag_in_kf"]) + trans[k]
+    diff = p - anchors[a_r]
+    h = np.linalg.norm(diff, axis=1)
+    u = diff[:, :2] / np.maximum(h, 1e-6)[:, None]
+    t = rec["t_ns"]
+    return u, (t - t.min()) // round(BATCH_SEARCH_WINDOW_S * NS_PER_S)
+
+
+def hypothesis_shift_moments(
+    values: gtsam.Values, rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int,
+    r_los: np.ndarray, g: np.ndarray, mix: NlosModel,
+) -> np.ndarray:
+    """Per keyframe, E[delta delta^T] (n_kf,2,2), m^2 in map x, y: the second moment of the
+    rigid shift of its BATCH_SEARCH_WINDOW_S stretch over every LOS/NLOS assignment of the
+    stretch's anchors, weighted by the assignment's evidence (`uwb.los_subset_search`).
+
+    The marginals are conditional on the responsibilities EM settled on; where another
+    assignment explains the stretch about as well (or better) and puts the track elsewhere,
+    the model's own posterior over assignments says the position is that much less
+    certain (Bayesian model averaging: the mean squared error about the reported track is
+    the conditional covariance plus this moment). Near zero where the assignment is clear;
+    zero where the search does not run (more than `uwb.SEARCH_MAX_ANCHORS` anchors heard
+    in a stretch, or too few ranges).
+    """
+    a_r = rec["anchor"].astype(np.int64)
+    out = np.zeros((n_kf, 2, 2))
+    if len(a_r) == 0:
+        return out
+    u, win = _search_geometry(values, rec, anchors, n_kf, a_r)
+    kf_win = np.full(n_kf, -1, np.int64)
+    for w in np.unique(win).tolist():
+        sel = np.flatnonzero(win == w)
+        hyp = los_subset_search(a_r[sel], r_los[sel], u[sel], g[sel], mix)
+        kf = rec["k"][sel].astype(np.int64)
+        kf_win[kf.min():kf.max() + 1] = w
+        if hyp is not None:
+            out[kf.min():kf.max() + 1] = hyp.shift_moment
+    # keyframes between two stretches' ranges take the earlier stretch's moment
+    for i in range(1, n_kf):
+        if kf_win[i] < 0:
+            out[i] = out[i - 1]
+    return out
 
 
 def refit_scale(

@@ -54,6 +54,14 @@ class OnlineSmoother:
     def pose(self, k: int) -> gtsam.Pose3:
         return self.smoother.calculateEstimatePose3(X(k))
 
+    def pose_covariance(self, k: int) -> np.ndarray:
+        """Marginal covariance (6,6) of X(k) in its Pose3 tangent (rot, trans; body frame)."""
+        return np.asarray(self.smoother.marginalCovariance(X(k)))
+
+    def velocity_covariance(self, k: int) -> np.ndarray:
+        """Marginal covariance (3,3) of V(k), (m/s)^2, map frame."""
+        return np.asarray(self.smoother.marginalCovariance(V(k)))
+
     def velocity(self, k: int) -> np.ndarray:
         return np.asarray(self.smoother.calculateEstimateVector(V(k)))
 

@@ -26,7 +26,7 @@ sigma_nlos and the NLOS rate from the data.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -340,6 +340,9 @@ class LosHypothesis:
     delta: np.ndarray  # horizontal shift (2,) of the window's track, m, under `los`
     excess: np.ndarray  # NLOS excess (M,) per anchor under `los` (0 where LOS), m
     gain: float  # negative log-likelihood of `current` minus that of `los` (>= 0)
+    # E[delta delta^T] (2,2), m^2, over every admissible subset weighted by its evidence:
+    # how far the window's track may sit from where it is, given the LOS/NLOS ambiguity
+    shift_moment: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
 def los_subset_search(
@@ -410,5 +413,10 @@ def los_subset_search(
     i_cur = int(np.sum(current.astype(int) << np.arange(m)))
     best = int(np.argmin(np.where(invalid, np.inf, cost)))
     los = subsets[best]
+    # evidence of each subset: its best fit plus the Laplace width of the shift
+    evidence = np.where(invalid, np.inf, cost + 0.5 * np.log(np.linalg.det(a_tot)))
+    w = np.exp(-(evidence - evidence.min()))
+    w /= w.sum()
+    moment = np.einsum("s,si,sj->ij", w, delta, delta)
     return LosHypothesis(ids, los, current, delta[best], np.where(los, 0.0, ex_all[best]),
-                         float(cost[i_cur] - cost[best]))
+                         float(cost[i_cur] - cost[best]), moment)

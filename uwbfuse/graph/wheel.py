@@ -29,6 +29,21 @@ def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Yaw(float(d[2])), np.array([d[0], d[1], 0.0]))
 
 
+def planar_covariance6(
+    cov_xyt: np.ndarray, out_of_plane_sigmas: tuple[float, float, float]
+) -> np.ndarray:
+    """Pose3 tangent covariance (rot, trans) of a planar delta with covariance `cov_xyt` in
+    (x, y, theta) and out-of-plane (roll rad, pitch rad, z m) sigmas."""
+    cov6 = np.zeros((6, 6))
+    sr, sp, sz = out_of_plane_sigmas
+    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
+    ix = [3, 4, 2]
+    cov6[np.ix_(ix, ix)] = cov_xyt
+    # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
+    cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
+    return cov6
+
+
 def between_factor(
     key_a: int,
     key_b: int,
@@ -43,14 +58,7 @@ def between_factor(
     `robust_k` (whitened units) wraps the Gaussian in a Huber kernel against wheel slip.
     Tangent order of Pose3 in GTSAM: (rx, ry, rz, tx, ty, tz).
     """
-    cov6 = np.zeros((6, 6))
-    sr, sp, sz = out_of_plane_sigmas
-    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
-    ix = [3, 4, 2]
-    cov6[np.ix_(ix, ix)] = cov_xyt
-    # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
-    cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
-    noise = gaussian_covariance(cov6)
+    noise = gaussian_covariance(planar_covariance6(cov_xyt, out_of_plane_sigmas))
     if robust_k is not None:
         # wheel slip: a disagreeing interval (IMU, ranges) loses weight instead of
         # dragging the trajectory
