@@ -360,7 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one trajectory per vehicle (TUM), or logs with --method")
     k.add_argument("--config", metavar="FILE", help="[map] and [vehicle]")
     k.add_argument("--names", metavar="A,B,...", help="vehicle names (default: file stems)")
-    k.add_argument("--out", default="collisions_out", metavar="DIR")
+    k.add_argument("--out", default="collisions_out", metavar="DIR",
+                   help="folder for events.csv, events.md and the map plot")
     k.add_argument("--method", help="estimate logs given as inputs first: " + METHOD_HELP)
     k.add_argument("--cov", metavar="C1.csv,...",
                    help="--cov-out CSV per trajectory, in order ('' for none)")
