@@ -60,20 +60,15 @@ ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
 WHEEL_HUBER_K = 1.345  # Huber threshold of the wheel factor (whitened), against slip
 ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
 # m: prior std of each anchor's range bias around the common one in the online graph (the
-# batch graph gets `graph.range_bias_anchor_sigma`). isam2 2-D ATE, 3 seeds x 120 s, mean:
-# anchors without offsets room 0.026 -> 0.018, factory 0.104 -> 0.096 (0.05 -> 0.02);
-# offsets U(+-0.1 m) room 0.048 -> 0.047, factory 0.114 -> 0.110; at 0.01 the offset logs
-# lose (room 0.052)
+# batch graph gets `graph.range_bias_anchor_sigma`): a few seconds of ranges barely
+# separate an offset from the position, and a loosely held one wanders
 ONLINE_ANCHOR_BIAS_SIGMA = 0.02
 MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
 SCALE_BLOCK = 20  # ranges of an anchor per online scale update
 MAX_SCALE = 0.2  # bound on a range scale error
 # ranges the configured LOS sigma counts as in the online LOS sigma estimates, which come
-# from the MAD of the ranges classified LOS (`robust_los_sigma`). isam2 2-D ATE, 6 seeds x
-# 120 s, against the responsibility-weighted RMS of the one-step residuals for both: factory
-# 0.079 -> 0.065, warehouse 0.138 -> 0.121, room 0.021 -> 0.018, warehouse-nlos 0.269 ->
-# 0.255; with anchor offsets U(+-0.1 m) room 0.059 -> 0.054, factory 0.103 -> 0.085
-# (misclassified NLOS ranges inflated the RMS: factory read 0.042-0.047 for a true 0.026)
+# from the MAD of the ranges classified LOS (`robust_los_sigma`: misclassified NLOS ranges
+# would inflate an RMS)
 LOS_SIGMA_PRIOR_RANGES = 20.0
 REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
 PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
@@ -173,11 +168,9 @@ class WheelRecords:
 
 
 # `graph.imu_noise_inflation = "auto"`: with wheels the wheel factor carries the motion
-# between ranges and a looser IMU loses on the simulated vehicles (factory batch 0.023 ->
-# 0.037 m at 30); without wheels the IMU alone carries it, and on the real handheld
-# ISAS-Walk1 log (se3-aligned 2-D ATE) 10 -> 30 takes isam2 0.45 -> 0.23 m and batch
-# 0.23 -> 0.12 m, while simulated IMU + UWB logs (idealised white-noise IMU) stay within
-# their seed-to-seed spread
+# between ranges; without wheels the IMU alone carries it and a consumer MEMS errs far
+# beyond its white noise. Fitted on one log (ISAS-Walk1), a constant still to be replaced by
+# an estimate from the log (docs/results.md)
 IMU_INFLATION_WITH_WHEELS = 10.0
 IMU_INFLATION_WITHOUT_WHEELS = 30.0
 

@@ -47,37 +47,24 @@ from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-# LM iterations of an intermediate EM round. Fewer (1-3) with more rounds was tried: better
-# on most simulated logs, but labyrinth +6 % and factory up to +30 % (EM lands in another
-# basin); going from the last E-step straight to the closing round cost factory seed 0 +7 %
+# LM iterations of an intermediate EM round: only close enough for the next E-step
 EM_ROUND_LM_ITERATIONS = 6
-# online NLOS share from which batch EM starts NLOS-first (wheeled logs); shares measured
-# with the windowed online review: warehouse-nlos 0.45-0.62 (NLOS-first 0.08-0.19 m against
-# 0.19-0.29 m online), warehouse 0.30-0.36, factory 0.13-0.20, room 0.12, Labyrinth 0.13
-# (NLOS-first 0.116 m, online 0.078 m); ISAS-Walk1 0.52 but has no wheels (see `solve`)
+# online NLOS share from which batch EM starts NLOS-first (wheeled logs): a threshold
+# between scenarios, still to be replaced by a choice from the data (see docs/results.md)
 HEAVY_NLOS_SHARE = 0.27
-# E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`). Threshold measured
-# (warehouse-nlos seeds 0-4, batch mean): 10 nats 0.144 m, 20 nats 0.095 m, 40 nats
-# 0.101 m, off 0.100 m; at 20 also room 0.009 -> 0.007, factory 0.026 -> 0.016, ISAS-Walk1
-# 0.193 -> 0.173, Plaza2 0.286 -> 0.331
+# E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`): a stretch is
+# scored against another assignment when it explains the ranges by this many nats more
 BATCH_SEARCH = True
 BATCH_SEARCH_NATS = 20.0
 BATCH_SEARCH_WINDOW_S = 5.0
-# LM stops when an iteration lowers the error by less than this fraction. 1e-3 against
-# 1e-4: LM iterations on the 10-minute bench log 19 -> 14, Plaza 44-48 -> 31; 2-D ATE
-# within 0.007 m per seed on room, factory, warehouse, warehouse-nlos (3-5 seeds) and
-# within 0.003 m on Labyrinth, ISAS-Walk1, Plaza1, Plaza2
+# LM stops when an iteration lowers the error by less than this fraction
 LM_RELATIVE_TOL = 1e-3
 
 
 # m: each anchor's range bias around the common one, as held in the LM rounds that free the
 # biases (the seeding pass keeps `graph.range_bias_anchor_sigma`; online caps it alike,
-# `builder.ONLINE_ANCHOR_BIAS_SIGMA`). Freed at the configured 5 cm, the anchors of a mostly
-# blocked site take up NLOS excess that EM left on LOS and the track shifts. Batch 2-D ATE,
-# mean over seeds: warehouse 60 s (8 seeds) 0.090 -> 0.063, 120 s (3) 0.079 -> 0.068,
-# ISAS-Walk1 0.120 -> 0.114, Labyrinth 0.079 -> 0.085, warehouse-nlos, factory and Plaza
-# within 0.002; with anchor offsets U(+-0.1 m) room 0.016 -> 0.020, factory 0.042 -> 0.043
-# (at 1 cm: room 0.033)
+# `builder.ONLINE_ANCHOR_BIAS_SIGMA`): freed at the configured 5 cm, the anchors of a mostly
+# blocked site take up NLOS excess that EM left on LOS and the track shifts
 BATCH_ANCHOR_BIAS_SIGMA = 0.02
 
 
@@ -124,11 +111,8 @@ class BatchResult:
 # Wheel odometry scale calibration (batch). Encoders read the speed and the yaw rate with a
 # scale error (wheel radius, track width: 1-3 % is ordinary); where ranges are weak (most
 # in NLOS, their excess states floating) the smoothed track follows the odometry and drifts
-# by the scale error times the distance. Simulated warehouse-nlos seed 1 (v scale 1.025):
-# batch 0.152 m as is, 0.087 m on odometry divided by the true scale. One refit after
-# the closing LM round, then one more LM round (batch 2-D ATE, 5 seeds x 120 s, off -> on:
-# factory 0.0151 -> 0.0104, warehouse 0.0633 -> 0.0603, warehouse-nlos 0.0918 -> 0.0880,
-# room 0.0072 -> 0.0070 m; three refit rounds instead of one: within 0.0005 m)
+# by the scale error times the distance. One refit after the closing LM round, then one
+# more LM round (docs/results.md, "Wheel odometry scale").
 WHEEL_SCALE_SIGMA = 0.05  # prior std of the speed and yaw-rate scale factors (1 = none)
 WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale moved this much
 
@@ -743,8 +727,7 @@ def _solve_em(
         h = predicted_ranges(values, rec, anchors, n_kf)
         r_los = rec["z"] - h - bias_values(values)[a_r]
     # the wheel scale is fitted once the range biases are free: fitted in the EM rounds,
-    # with D(a) held at zero, it takes up range offsets (Labyrinth, ranges ~0.1 m long:
-    # v scale 1.027, batch 0.085 -> 0.091 m; fitted here 1.005, 0.085 m)
+    # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
         wheel_scale.refit(values, n_kf)
         if wheel_scale.apply([base_graph, *static.values()]):
