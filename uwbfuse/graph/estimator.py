@@ -606,7 +606,8 @@ class GraphEstimator:
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
                                     has_wheel=b.has_wheel, with_scale=b.with_scale,
                                     wheel=b.wheel_records,
-                                    online_verdict=b.prequential_verdict())
+                                    online_verdict=b.prequential_verdict(),
+                                    planar=b.planar)
 
     def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude).

@@ -43,6 +43,7 @@ from uwbfuse.graph.uwb import (
     range_factor_keyed,
 )
 from uwbfuse.graph.wheel import between_factor
+from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
@@ -305,6 +306,7 @@ def solve(
     with_scale: bool = False,
     wheel: WheelRecords | None = None,
     online_verdict: str | None = None,
+    planar: bool = True,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
@@ -336,7 +338,12 @@ def solve(
     candidates = {m.name: m for m in RANGE_MODELS if scale0 is not None or not m.common_scale}
     if cfg.graph.range_model != "auto":
         return problem.fit(candidates[cfg.graph.range_model], rec, initial, model, scale0)
-    if online_verdict == "mixture":  # the online pass already scored it decisively better
+    if online_verdict == "mixture" or not (planar or anchors_observe_height(anchors)):
+        # the online pass already scored the mixture decisively better; or the height is
+        # free and the anchors coplanar, so a common range offset trades against the
+        # tag's height, and the robust model (its offsets free from the start) takes that
+        # null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no held-out range
+        # can show
         candidates = {n: m for n, m in candidates.items() if m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)

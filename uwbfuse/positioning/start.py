@@ -173,13 +173,22 @@ def solve_static(
     return best[:2].copy(), float(best[2]), rms
 
 
+HEIGHT_SPREAD_M = 1.0  # m: anchors spread over this much height observe the tag's height
+
+
+def anchors_observe_height(positions: np.ndarray) -> bool:
+    """True when the anchors (N,3, m, map frame) spread over HEIGHT_SPREAD_M of height:
+    only then do ranges tell the tag's height apart (from a common range offset, too)."""
+    z = np.asarray(positions)[:, 2]
+    return float(z.max() - z.min()) >= HEIGHT_SPREAD_M
+
+
 def planar_height(anchors: AnchorMap, z_start: float) -> float:
     """Base height (m) held by the planar constraint.
 
     When the anchors are (nearly) coplanar the ranges barely observe height, so a start
     height solved from them is unreliable: the floor is then taken at the map frame's z = 0
-    (anchor heights are measured from the floor). With anchors spread over at least 1 m of
-    height the start height is used.
+    (anchor heights are measured from the floor). With anchors that observe height
+    (`anchors_observe_height`) the start height is used.
     """
-    z = anchors.positions[:, 2]
-    return z_start if float(z.max() - z.min()) >= 1.0 else 0.0
+    return z_start if anchors_observe_height(anchors.positions) else 0.0
