@@ -106,7 +106,8 @@ def run_one(log_path: str, method: str) -> dict:
     tic = time.perf_counter()
     log = read_log(log_path, cfg)
     read_s = time.perf_counter() - tic
-    res = estimate(log, Method(method), cfg)
+    # as `uwbfuse run -o EST.tum`: no covariance output, so no marginals (`auto`)
+    res = estimate(log, Method(method), cfg, covariance=False)
     wall = time.perf_counter() - tic
     cpu = time.process_time() - c0
     lat = np.asarray(res.report.get("update_latency_raw_s", res.step_latency_s)) * 1e3

@@ -193,3 +193,28 @@ def test_batch_ellipse_under_warehouse_nlos() -> None:
     blocked for most of the log)"""
     share = _pooled_share(Method.BATCH, ["warehouse"], [0, 1])
     assert 0.85 <= share <= 0.99, f"batch: {share:.3f} inside the 95 % ellipse"
+
+
+def test_run_computes_the_marginals_only_for_outputs_that_carry_them(tmp_path):
+    """Test that under `graph.marginal_covariances = "auto"` a run writing only the TUM
+    skips the marginals (unknown covariance), and one writing --cov-out gets them."""
+    from uwbfuse.io.writer import write_contract_log
+    from uwbfuse.pipeline import run_log
+    from uwbfuse.sim.simulator import simulate
+
+    log = tmp_path / "room.mcap"
+    write_contract_log(log, simulate("room", 20.0, 0))
+    def known_share(res) -> float:  # graph epochs (after its start) with a real xy variance
+        traj = res.trajectory
+        graph = traj.t_ns > res.report["init_t_ns"] + 10**9
+        assert np.count_nonzero(graph) > 50
+        if traj.covariance is None:
+            return 0.0
+        return float(np.mean(traj.covariance[graph, 0, 0] < 1.0))
+
+    plain = run_log(log, Method.ISAM2, Config(), tum_out=tmp_path / "a.tum")
+    wanted = run_log(log, Method.ISAM2, Config(), tum_out=tmp_path / "b.tum",
+                     cov_out=tmp_path / "b.csv")
+    assert known_share(plain) == 0.0
+    assert known_share(wanted) > 0.95
+    np.testing.assert_allclose(plain.trajectory.position, wanted.trajectory.position)

@@ -155,7 +155,8 @@ def run_methods(
     gt = log_data.ground_truth
     for method in methods:
         try:
-            res = estimate(log_data, method, config, _named(progress, method.value))
+            res = estimate(log_data, method, config, _named(progress, method.value),
+                           covariance=False)  # nothing here shows a covariance
         except UwbfuseError as e:
             log.warning("%s failed: %s", method.value, e)
             rows.append(MethodRow(method.value, "failed", error=str(e)))

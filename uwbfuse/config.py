@@ -321,11 +321,13 @@ class GraphConfig(_Section):
     lm_max_iterations: int = Field(
         30, ge=1, description="batch: Levenberg-Marquardt iterations per round"
     )
-    marginal_covariances: bool = Field(
-        True, description="pose covariances of isam2, isam2-smoothed and batch from the "
+    marginal_covariances: bool | Literal["auto"] = Field(
+        "auto", description="pose covariances of isam2, isam2-smoothed and batch from the "
         "graph's marginals (the trajectory's covariance, written by --cov-out and "
-        "--mcap-out); false = skip them (saves one marginal per update online and the "
-        "marginals of the final graph in batch) and report the poses' covariance unknown"
+        "--mcap-out); auto = when an output asks for them (`run` with --cov-out or "
+        "--mcap-out, `collisions`, the library's `pipeline.estimate`); false = skip them "
+        "(saves one marginal per update online and the marginals of the final graph in "
+        "batch) and report the poses' covariance unknown"
     )
 
 

@@ -125,11 +125,22 @@ def _splice_covariance(causal: PoseStream, head: np.ndarray,
     return np.concatenate([part(causal, head), part(final, slice(None))])
 
 
+def with_covariance(config: Config, wanted: bool) -> Config:
+    """`config` with `graph.marginal_covariances = "auto"` resolved: on where `wanted`."""
+    if config.graph.marginal_covariances != "auto":
+        return config
+    return config.model_copy(update={"graph": config.graph.model_copy(
+        update={"marginal_covariances": wanted})})
+
+
 def estimate(
-    log: SensorLog, method: Method, config: Config, progress: ProgressFn | None = None
+    log: SensorLog, method: Method, config: Config, progress: ProgressFn | None = None,
+    covariance: bool = True,
 ) -> RunResult:
     """Run `method` on an already-read log (ground truth is never passed on); `progress`
-    is told the seconds of log processed (see `run_streaming`)."""
+    is told the seconds of log processed (see `run_streaming`); `covariance`: the poses'
+    covariances are wanted (`graph.marginal_covariances = "auto"` computes them then)."""
+    config = with_covariance(config, covariance)
     streams = check_inputs(log, method, config)
     sensors_only = SensorLog(
         imu=log.imu, wheel=log.wheel, ranges=log.ranges, anchors=log.anchors,
@@ -211,7 +222,10 @@ def run_log(
     tic = time.perf_counter()
     sensor_log = read_log(path, config)
     read_wall = time.perf_counter() - tic
-    result = estimate(sensor_log, method, config, progress)
+    # the graph's marginals cost time: computed (under `auto`) only for the outputs that
+    # carry covariances
+    result = estimate(sensor_log, method, config, progress,
+                      covariance=mcap_out is not None or cov_out is not None)
     result.read_wall_s = read_wall
     with all_or_none():
         if tum_out is not None:

@@ -129,7 +129,7 @@ class GraphEstimator:
         # pose covariances (ROS order, map axes; `graph.marginal_covariances`): per keyframe
         # as it left the window (isam2-smoothed), and the newest solved keyframe's
         # (time, position, covariance, velocity covariance) that the causal output carries
-        self._with_cov = config.graph.marginal_covariances
+        self._with_cov = config.graph.marginal_covariances is not False  # auto: on
         self._kf_cov: dict[int, np.ndarray] = {}
         self._head_cov: tuple[int, np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self._cov_latency: list[float] = []

@@ -773,7 +773,7 @@ def _solve_em(
                        None if wheel_scale is None else wheel_scale.applied.copy(),
                        nlos_states=nlos_out,
                        range_model="mixture" if states is not None else "robust",
-                       marginals=marginals if g_cfg.marginal_covariances else None)
+                       marginals=marginals if g_cfg.marginal_covariances is not False else None)
 
 
 def observed_information_share(
