@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""`ekf` and `ukf` on logs without UWB that have an IMU and wheels (issue 17 item 7): they
-start at the map origin, heading zero, as dead reckoning does."""
+"""`ekf`, `ukf` and the graph on logs without UWB that have an IMU and wheels (issue 17
+item 7): they start at the map origin, heading zero, as dead reckoning does."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def test_ekf_beats_odom_on_the_jackal_heading() -> None:
     t, g = log.imu.t_ns, log.imu.gyro
     ref = np.concatenate([[0.0], np.cumsum(0.5 * (g[1:, 2] + g[:-1, 2]) * np.diff(t) / 1e9)])
     rms = {}
-    for m in (Method.ODOM, Method.EKF, Method.UKF):
+    for m in (Method.ODOM, Method.EKF, Method.UKF, Method.ISAM2, Method.BATCH):
         traj = estimate(log, m, cfg).trajectory
         r = np.interp(traj.t_ns, t, ref)
         e = (_yaw(traj) - _yaw(traj)[0]) - (r - r[0])
@@ -74,3 +74,18 @@ def test_ekf_beats_odom_on_the_jackal_heading() -> None:
     # own limits on this sloped, slipping route: docs/results.md)
     assert rms[Method.EKF] < rms[Method.ODOM] / 3
     assert rms[Method.UKF] < rms[Method.ODOM] / 3
+    # the graph fuses the same two (preintegrated IMU, wheel factors, planar prior)
+    assert rms[Method.ISAM2] < rms[Method.ODOM] / 3, rms
+    assert rms[Method.BATCH] < rms[Method.ODOM] / 3, rms
+
+
+@pytest.mark.parametrize("method", [Method.ISAM2, Method.ISAM2_SMOOTHED, Method.BATCH])
+def test_graph_fuses_imu_and_wheels_without_anchors(no_uwb: SensorLog, method: Method) -> None:
+    """test that the graph methods run without ranges or anchors from the map origin,
+    heading zero, and keep up with wheel dead reckoning (SE(2)-aligned)"""
+    traj = estimate(no_uwb, method, Config()).trajectory
+    assert np.linalg.norm(traj.position[0, :2]) < 0.05 and abs(_yaw(traj)[0]) < 0.02
+    ate = evaluate(traj, no_uwb.ground_truth, align="se2", max_dt=0.05).ate_2d.rmse
+    odom = estimate(no_uwb, Method.ODOM, Config()).trajectory
+    ate_odom = evaluate(odom, no_uwb.ground_truth, align="se2", max_dt=0.05).ate_2d.rmse
+    assert ate < 1.3 * ate_odom, (ate, ate_odom)

@@ -66,10 +66,11 @@ def test_sensor_combinations(factory, drop, tol_isam2, tol_batch):
     assert online.report["reanchor_events"] == []
 
 
-def test_wheels_and_imu_without_uwb_is_rejected(factory):
-    """Test that a graph method refuses a log without ranges (not a UWB method)."""
+def test_wheels_alone_without_uwb_is_rejected(factory):
+    """Test that a graph method refuses a log with neither ranges nor an IMU (IMU + wheels
+    without ranges it fuses: tests/test_filters_no_uwb.py)."""
     log = factory.log
-    no_uwb = SensorLog(imu=log.imu, wheel=log.wheel, anchors=log.anchors, source="x")
+    no_uwb = SensorLog(wheel=log.wheel, anchors=log.anchors, source="x")
     with pytest.raises(EstimatorError):
         estimate(no_uwb, Method.ISAM2, Config())
 

@@ -67,11 +67,12 @@ _GRAPH = "uwbfuse.graph.estimator"
 _UWB = frozenset({"uwb"})
 _IMU_WHEEL = frozenset({"imu", "wheel"})
 METHODS: dict[Method, MethodSpec] = {
-    Method.BATCH: MethodSpec(_GRAPH, _UWB, smoothed=True, classifies_ranges=True,
-                             reference_rank=0),
-    Method.ISAM2_SMOOTHED: MethodSpec(_GRAPH, _UWB, smoothed=True, classifies_ranges=True,
-                                      reference_rank=1),
-    Method.ISAM2: MethodSpec(_GRAPH, _UWB, classifies_ranges=True, reference_rank=2),
+    Method.BATCH: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, smoothed=True,
+                             classifies_ranges=True, reference_rank=0),
+    Method.ISAM2_SMOOTHED: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, smoothed=True,
+                                      classifies_ranges=True, reference_rank=1),
+    Method.ISAM2: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, classifies_ranges=True,
+                             reference_rank=2),
     Method.EKF: MethodSpec("uwbfuse.filters.ekf", _UWB, without_ranges=_IMU_WHEEL,
                            reference_rank=3),
     Method.UKF: MethodSpec("uwbfuse.filters.ukf", _UWB, without_ranges=_IMU_WHEEL,

@@ -600,7 +600,7 @@ class GraphEstimator:
             if b.with_bias:
                 initial.insert(D(a), float(b.range_bias[a]))
         if b.with_bias:
-            initial.insert(C, float(np.mean(b.range_bias)))
+            initial.insert(C, float(np.mean(b.range_bias)) if len(b.range_bias) else 0.0)
         rec = b.records.arrays()
         self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
                                     self.anchors.positions, n, b.mixture, b.t0, b.scale,
@@ -791,7 +791,11 @@ def make(
     """The graph estimator for `method` (isam2, isam2-smoothed or batch)."""
     if method not in (Method.ISAM2, Method.ISAM2_SMOOTHED, Method.BATCH):
         raise EstimatorError(f"uwbfuse.graph does not implement method {method.value}")
-    if anchors is None or len(anchors) == 0 or "uwb" not in streams:
+    if "uwb" not in streams and {"imu", "wheel"} <= streams:
+        # IMU + wheels without UWB: the graph starts at the map origin, heading zero, as
+        # the filters and dead reckoning do, and fuses the two
+        anchors = AnchorMap((), np.zeros((0, 3)))
+    elif anchors is None or len(anchors) == 0 or "uwb" not in streams:
         raise EstimatorError(f"method {method.value} needs UWB ranges and an anchor map")
     from uwbfuse.positioning.initialisation import Initialiser
 

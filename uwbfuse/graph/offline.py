@@ -332,8 +332,12 @@ def solve(
     problem = _Problem(cfg, base_graph, anchors, n_kf, t0_ns, wheel,
                        nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
     scale0 = scale0 if with_scale else None
-    if not cfg.graph.nlos:  # no NLOS modelling asked for: the configured kernel and sigma
-        return _solve_em(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
+    if not cfg.graph.nlos or len(rec["z"]) == 0:
+        # no NLOS modelling asked for (the configured kernel and sigma), or no ranges at all
+        # (IMU + wheels): one LM over the motion factors
+        plain = cfg if not cfg.graph.nlos else cfg.model_copy(
+            update={"graph": cfg.graph.model_copy(update={"nlos": False})})
+        return _solve_em(plain, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
                          nlos_first=False, wheel_scale=problem.wheel_scale())
     candidates = {m.name: m for m in RANGE_MODELS if scale0 is not None or not m.common_scale}
     if cfg.graph.range_model != "auto":

@@ -179,8 +179,8 @@ HEIGHT_SPREAD_M = 1.0  # m: anchors spread over this much height observe the tag
 def anchors_observe_height(positions: np.ndarray) -> bool:
     """True when the anchors (N,3, m, map frame) spread over HEIGHT_SPREAD_M of height:
     only then do ranges tell the tag's height apart (from a common range offset, too)."""
-    z = np.asarray(positions)[:, 2]
-    return float(z.max() - z.min()) >= HEIGHT_SPREAD_M
+    z = np.asarray(positions).reshape(-1, 3)[:, 2]
+    return len(z) > 0 and float(z.max() - z.min()) >= HEIGHT_SPREAD_M
 
 
 def planar_height(anchors: AnchorMap, z_start: float) -> float:
