@@ -319,3 +319,26 @@ def test_uwb_only_log_is_smoothed_with_a_constant_velocity_prior():
     # measured (seed 1): isam2-smoothed 0.050, batch 0.061, wls 0.061 m
     assert smoothed < 0.9 * wls, (smoothed, wls)
     assert batch < 1.05 * wls, (batch, wls)
+
+
+def test_motion_prior_densities_set_how_smooth_a_uwb_only_track_is():
+    """Test that `graph.motion_accel_density` and `motion_turn_density` reach the
+    constant-velocity prior: a smaller acceleration density gives a smoother track, a
+    smaller turn density a steadier heading."""
+    sim = simulate_with_truth("room", 20.0, 1)
+    log = _drop(sim.log, "imu", "wheel")
+
+    def run(acc: float, turn: float):
+        cfg = Config(graph={"motion_accel_density": acc, "motion_turn_density": turn})
+        return estimate(log, Method.ISAM2_SMOOTHED, cfg).final
+
+    def roughness(traj) -> float:  # RMS second difference of the position, m
+        return float(np.sqrt(np.mean(np.diff(traj.position[:, :2], 2, axis=0) ** 2)))
+
+    def heading_spread(traj) -> float:  # RMS change of the quaternion between epochs
+        return float(np.sqrt(np.mean(np.diff(traj.quat_xyzw, axis=0) ** 2)))
+
+    smooth, loose = run(0.2, 0.5), run(5.0, 0.5)
+    assert roughness(smooth) < 0.8 * roughness(loose)
+    steady, turning = run(1.0, 0.01), run(1.0, 2.0)
+    assert heading_spread(steady) < 0.8 * heading_spread(turning)

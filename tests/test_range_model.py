@@ -73,3 +73,16 @@ def test_heavy_nlos_simulation_chooses_the_mixture():
     a = evaluate(auto.trajectory, gt, max_dt=0.02).ate_2d.rmse
     m = evaluate(mixture.trajectory, gt, max_dt=0.02).ate_2d.rmse
     assert a == pytest.approx(m, abs=1e-6)
+
+
+def test_a_configured_range_model_is_fitted_without_the_choice():
+    """Test that `graph.range_model = "robust"` fits the robust model alone (no held-out
+    scores) and weights the online pass's ranges by it too."""
+    cfg = load_config(real("labyrinth/config.toml"))
+    cfg = cfg.model_copy(update={"graph": cfg.graph.model_copy(update={"range_model": "robust"})})
+    log = read_log(real("labyrinth/labyrinth.mcap"), cfg)
+    res = estimate(log, Method.BATCH, cfg)
+    assert res.report["batch"]["range_model"] == "robust"
+    assert res.report["batch"]["heldout_log_score"] is None
+    assert res.report["online_range_model"]["model"] == "robust"
+    assert all(a["nlos"] == 0 for a in res.report["anchors"].values())

@@ -70,6 +70,18 @@ def test_lkf_smooths_wls_in_room() -> None:
     assert _ate_sim("room", 60.0, 0, "lkf") < _ate_sim("room", 60.0, 0, "wls")
 
 
+def test_lkf_accel_psd_sets_how_smooth_its_track_is() -> None:
+    """test that `[lkf] accel_psd` reaches the constant-velocity model: a smaller white
+    acceleration gives a smoother track"""
+    log = _sim("room", 30.0, 0)
+
+    def roughness(psd: float) -> float:  # RMS second difference of the position, m
+        traj = estimate(log, Method.LKF, Config(lkf={"accel_psd": psd})).trajectory
+        return float(np.sqrt(np.mean(np.diff(traj.position[:, :2], 2, axis=0) ** 2)))
+
+    assert roughness(0.05) < 0.8 * roughness(5.0)
+
+
 def test_calibrated_nlos_model_helps_in_heavy_nlos() -> None:
     """test that [wls] values from calibrate-nlos on one log improve WLS on another"""
     model = calibrate_nlos(_sim("warehouse-nlos", 40.0, 7), Config())

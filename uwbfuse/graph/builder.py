@@ -343,6 +343,7 @@ class GraphBuilder:
         self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
         self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
         self._abs_i = 0
+        self._robust_sigma: float | None = None  # cached robust_sigma() of the ring
 
     # ---------------------------------------------------------------- data
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
@@ -793,11 +794,13 @@ class GraphBuilder:
             self.mixture.sigma_los = s
 
     def robust_sigma(self) -> float:
-        """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual|."""
-        seen = self._abs_r[np.isfinite(self._abs_r)]
-        if len(seen) == 0:
-            return self.cfg.uwb.sigma
-        return float(np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
+        """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual| (one
+        median per batch of new residuals, not per range)."""
+        if self._robust_sigma is None:
+            seen = self._abs_r[np.isfinite(self._abs_r)]
+            self._robust_sigma = self.cfg.uwb.sigma if len(seen) == 0 else float(
+                np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
+        return self._robust_sigma
 
     def prequential_verdict(self) -> str | None:
         """"robust" or "mixture" where the prequential scores favour one significantly
@@ -845,6 +848,7 @@ class GraphBuilder:
             self._pq_sum2 += float(np.sum(d * d))
         self._abs_r[idx] = np.abs(r_los)
         self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
+        self._robust_sigma = None  # the ring moved
         self.prequential_n += n
 
     def add_smoothed_residuals(self, r_los: np.ndarray, g: np.ndarray) -> None:
