@@ -68,7 +68,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if get_fleet(args.scenario) is not None:
         return _simulate_fleet(args)
 
-    sim = simulate(args.scenario, duration_s=args.duration, seed=args.seed)
+    extra = {"signal_quality": True} if args.signal_quality else {}
+    sim = simulate(args.scenario, duration_s=args.duration, seed=args.seed, **extra)
     write_contract_log(args.out, sim)
     span = sim.time_span_ns()
     print(
@@ -141,6 +142,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     print(result.table())
     if args.json:
         result.write_json(args.json)
+    return 0
+
+
+def _cmd_train_nlos(args: argparse.Namespace) -> int:
+    from uwbfuse.train_nlos import train_nlos
+
+    res = train_nlos(args.logs, args.output, config_path=args.config, gts=args.gt,
+                     n_trees=args.trees, threshold=args.threshold, seed=args.seed)
+    print(f"wrote {args.output}: random forest of {args.trees} trees on {res.n_ranges} "
+          f"ranges ({res.n_nlos} NLOS, |error| > {args.threshold} m; {res.n_unlabelled} "
+          f"outside the ground truth skipped), features {', '.join(res.features)}")
     return 0
 
 
@@ -269,6 +281,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
     s.add_argument("--duration", type=float, default=120.0, help="log length, s")
     s.add_argument("--seed", type=int, default=0, help="random seed (same seed, same log)")
+    s.add_argument("--signal-quality", action="store_true",
+                   help="ranges with RX and first-path power (dBm) on a custom range type "
+                   "(uwbfuse_msgs/msg/UwbRange), named in the log's uwb_fields metadata")
     s.set_defaults(func=_cmd_simulate)
 
     r = sub.add_parser("run", help="estimate a trajectory from a log")
@@ -349,6 +364,28 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--gt", metavar="GT.tum", help="ground truth, if not in the log")
     n.add_argument("-o", "--output", metavar="OUT.toml", help="default: stdout")
     n.set_defaults(func=_cmd_calibrate_nlos)
+
+    tn = sub.add_parser(
+        "train-nlos", help="train the NLOS random-forest classifier for [nlos] classifier",
+        description="Label every range LOS or NLOS from ground truth (|measured - true "
+        "range| > --threshold) and train a random forest on causal per-range features "
+        "(residual against a causal fix, range jump and rate, distance, anchor elevation, "
+        "RSSI and RX - first-path power where the log has them). The model file is skops "
+        "data (never a pickle).",
+        epilog="example:\n  uwbfuse train-nlos a.mcap b.mcap -o nlos.skops\n  uwbfuse "
+        "train-nlos real.mcap --gt gt.tum --config c.toml -o nlos.skops",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    tn.add_argument("logs", nargs="+", metavar="LOG", help="logs with ground truth")
+    tn.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
+    tn.add_argument("--gt", nargs="+", metavar="GT.tum",
+                    help="ground truth per log (TUM, same order), else the log's topic")
+    tn.add_argument("-o", "--output", required=True, metavar="MODEL", help="model file")
+    tn.add_argument("--trees", type=int, default=100, help="trees in the forest")
+    tn.add_argument("--threshold", type=float, default=0.15,
+                    help="label threshold on |measured - true range|, m (3x DW1000 LOS std)")
+    tn.add_argument("--seed", type=int, default=0, help="forest random seed")
+    tn.set_defaults(func=_cmd_train_nlos)
 
     k = sub.add_parser(
         "collisions", help="predict collisions of vehicles with the map and each other",

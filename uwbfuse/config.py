@@ -123,6 +123,12 @@ class UwbConfig(_Section):
     range_field: str = Field("range", description="dotted path to the range in metres")
     array_field: str = Field("", description="array of ranges in one message ('' = none)")
     valid_field: str = Field("", description="boolean/integer validity flag ('' = none)")
+    rssi_field: str = Field(
+        "", description="optional received (total) power, dBm: dotted path (inside each "
+        "element with array_field; '' = none, or the log's uwb_fields metadata)")
+    first_path_power_field: str = Field(
+        "", description="optional first-path power, dBm: dotted path as rssi_field ('' = "
+        "none, or the log's uwb_fields metadata)")
     range_offset: dict[str, float] = Field(
         default_factory=dict, description="per-anchor offset subtracted from ranges, metres"
     )
@@ -385,6 +391,13 @@ class LkfConfig(_Section):
     )
 
 
+class NlosConfig(_Section):
+    classifier: str = Field(
+        "", description="optional NLOS classifier model file written by `uwbfuse "
+        "train-nlos` ('' = none): its P(NLOS) per range is the graph's prior NLOS "
+        "probability, the wls weights and the ekf/ukf range weighting")
+
+
 class OutputConfig(_Section):
     rate: float = Field(10.0, gt=0, description="output poses per second for filters, Hz")
 
@@ -497,6 +510,7 @@ class Config(_Section):
     wls: WlsConfig = Field(default_factory=WlsConfig)
     lkf: LkfConfig = Field(default_factory=LkfConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
+    nlos: NlosConfig = Field(default_factory=NlosConfig)
     map: MapConfig = Field(default_factory=MapConfig)
     vehicle: VehicleConfig = Field(default_factory=VehicleConfig)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -133,6 +134,31 @@ def with_covariance(config: Config, wanted: bool) -> Config:
         update={"marginal_covariances": wanted})})
 
 
+def _classifier_priors(
+    log: SensorLog, config: Config, streams: frozenset[str]
+) -> Callable[[object], None]:
+    """A function that hands an estimator the `[nlos] classifier`'s P(NLOS) per range
+    (`nlos_classifier.RangePriors`; a no-op without a classifier or ranges)."""
+    if not config.nlos.classifier or "uwb" not in streams or log.ranges is None:
+        return lambda _est: None
+    from uwbfuse.positioning.nlos_classifier import (
+        RangePriors,
+        classifier_priors,
+        set_range_priors,
+    )
+
+    p = classifier_priors(log, config)
+    assert p is not None and log.ranges is not None
+    t, a = log.ranges.t_ns, log.ranges.anchor
+
+    def give(est: object) -> None:
+        if not set_range_priors(est, RangePriors(t, a, p)):
+            logging.getLogger(__name__).info("%s: this method does not take the NLOS "
+                                             "classifier's priors", type(est).__name__)
+
+    return give
+
+
 def estimate(
     log: SensorLog, method: Method, config: Config, progress: ProgressFn | None = None,
     covariance: bool = True,
@@ -147,10 +173,13 @@ def estimate(
         source=log.source, report=log.report,
     )
     estimator = make_estimator(method, config, log.anchors, streams)
+    priors = _classifier_priors(log, config, streams)
+    priors(estimator)
     if method is not Method.WLS and "uwb" in streams and log.anchors is not None:
         # Poses from the first motion on (contract): UWB-only fixes until the method has
         # its own start (heading needs some motion).
         fallback = make_estimator(Method.WLS, config, log.anchors, streams)
+        priors(fallback)
         estimator = WithFallback(estimator, fallback)
     epochs = output_epochs(sensors_only, config.output.rate)
     res = run_streaming(estimator, sensors_only, epochs, progress)

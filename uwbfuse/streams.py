@@ -84,21 +84,40 @@ class WheelStream:
 class RangeStream:
     """UWB ranges: anchor (N,) int index into `AnchorMap.ids`, range (N,) metres.
 
-    Ranges are as measured, minus any configured `[uwb.range_offset]`.
+    Ranges are as measured, minus any configured `[uwb.range_offset]`. Signal quality, when
+    the log carries it (`[uwb] rssi_field` / `first_path_power_field`): `rssi_dbm` (N,)
+    received total power and `first_path_dbm` (N,) first-path power, dBm, NaN for a range
+    whose message had none; None when the log has no such field.
     """
 
     t_ns: I64
     anchor: NDArray[np.int32]
     range: F64
+    rssi_dbm: F64 | None = None
+    first_path_dbm: F64 | None = None
 
     def __post_init__(self) -> None:
-        _check_len("uwb", self.t_ns, self.anchor, self.range)
+        _check_len("uwb", self.t_ns, self.anchor, self.range,
+                   *(a for a in (self.rssi_dbm, self.first_path_dbm) if a is not None))
 
     def __len__(self) -> int:
         return len(self.t_ns)
 
     def slice(self, start: int, stop: int) -> RangeStream:
-        return RangeStream(self.t_ns[start:stop], self.anchor[start:stop], self.range[start:stop])
+        def part(a: F64 | None) -> F64 | None:
+            return None if a is None else a[start:stop]
+
+        return RangeStream(self.t_ns[start:stop], self.anchor[start:stop],
+                           self.range[start:stop], part(self.rssi_dbm),
+                           part(self.first_path_dbm))
+
+    def take(self, sel: NDArray) -> RangeStream:
+        """Rows `sel` (mask or index) as a new stream."""
+        def part(a: F64 | None) -> F64 | None:
+            return None if a is None else a[sel]
+
+        return RangeStream(self.t_ns[sel], self.anchor[sel], self.range[sel],
+                           part(self.rssi_dbm), part(self.first_path_dbm))
 
 
 UNKNOWN_VARIANCE = 1.0e6

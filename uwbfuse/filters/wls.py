@@ -39,6 +39,7 @@ from uwbfuse.positioning.multilateration import (
     group_epochs,
     select_nearest,
 )
+from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.nlos_model import (
     NlosModel,
     NlosParams,
@@ -115,6 +116,9 @@ class EpochFixer:
         self._t = np.zeros(0, dtype=np.int64)
         self._a = np.zeros(0, dtype=np.int32)
         self._r = np.zeros(0)
+        self._p = np.zeros(0)  # the classifier's P(NLOS) per buffered range (with priors)
+        self.priors: RangePriors | None = None
+        self._pgrid: np.ndarray | None = None
         self._last_stamps: np.ndarray | None = None
         self.n_epochs = 0
         self.n_fixes = 0
@@ -137,9 +141,13 @@ class EpochFixer:
         self._t = np.concatenate([self._t, np.asarray(t_ns, dtype=np.int64)])
         self._a = np.concatenate([self._a, np.asarray(anchor, dtype=np.int32)])
         self._r = np.concatenate([self._r, np.asarray(rng, dtype=np.float64)])
+        if self.priors is not None:
+            self._p = np.concatenate([self._p, self.priors.take(t_ns, anchor)])
         keep = self._t >= self._t[-1] - round(_KEEP_S * NS_PER_S)
         if not np.all(keep):
             self._t, self._a, self._r = self._t[keep], self._a[keep], self._r[keep]
+            if self.priors is not None:
+                self._p = self._p[keep]
 
     def fix(self, t_ns: int, *, only_new: bool = False) -> TagFix | None:
         """Weighted fix of the epoch (t_ns - window, t_ns]; None if too few ranges or the
@@ -164,7 +172,11 @@ class EpochFixer:
         nearest = 3 if self.config.wls.nearest_three else None
         if nearest is not None:
             grid[~select_nearest(grid, nearest)] = np.nan
-        wf = weighted_fix(self.anchors, grid, self.model, dim=self.dim, tag_z=self.tag_z)
+        self._pgrid = None if self.priors is None else group_epochs(
+            self._t[sel], self._a[sel], self._p[sel], len(self.anchors), np.array([t_ns]),
+            self.window_ns)[0]
+        wf = weighted_fix(self.anchors, grid, self.model, dim=self.dim, tag_z=self.tag_z,
+                          p_nlos=self._pgrid)
         k = 0
         if wf.fixes.ok[0] and self._worst_residual(grid[0], wf, 0) > _OUTLIER_GATE:
             wf, k = self._exclude_one(grid[0], wf)
@@ -225,7 +237,9 @@ class EpochFixer:
             return wf_all, 0
         grid = np.repeat(row[None, :], len(used), axis=0)
         grid[np.arange(len(used)), used] = np.nan
-        wf = weighted_fix(self.anchors, grid, self.model, dim=self.dim, tag_z=self.tag_z)
+        pg = None if self._pgrid is None else np.repeat(self._pgrid, len(used), axis=0)
+        wf = weighted_fix(self.anchors, grid, self.model, dim=self.dim, tag_z=self.tag_z,
+                          p_nlos=pg)
         ok = wf.fixes.ok
         if not np.any(ok):
             self._loo_grid = row[None, :]
@@ -319,6 +333,11 @@ class WlsEstimator:
 
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
         self.fixer.add_ranges(t_ns, anchor, rng)
+
+    def use_range_priors(self, priors: RangePriors) -> None:
+        """Take the learned classifier's P(NLOS) per range as the NLOS probabilities of the
+        weights (in place of those from the residuals and the [wls] histogram model)."""
+        self.fixer.priors = priors
 
     def step(self, t_ns: int) -> None:
         fx = self.fixer.fix(t_ns)

@@ -69,6 +69,9 @@ def _layout(type_name: str, l1: int, l2: int) -> tuple[int, int]:
     if type_name == msgdefs.TRANSFORM_STAMPED:
         start = _a8(_a4(p) + 4 + l2)
         return start, start + 7 * 8
+    if type_name == msgdefs.UWB_RANGE:  # child string = anchor_id, then three float32
+        start = _a4(_a4(p) + 4 + l2)
+        return start, start + 3 * 4
     raise KeyError(type_name)
 
 
@@ -76,7 +79,7 @@ FAST_TYPES = frozenset(
     {msgdefs.IMU, msgdefs.ODOMETRY, msgdefs.RANGE, msgdefs.POSE_STAMPED,
      msgdefs.TRANSFORM_STAMPED}
 )
-_HAS_CHILD = frozenset({msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED})
+_HAS_CHILD = frozenset({msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE})
 
 
 # ----------------------------------------------------------------------------------------
@@ -209,6 +212,31 @@ def encode_range(
         msgs = _encode_group(
             msgdefs.RANGE, np.asarray(t_ns)[idx], anchor_ids[int(a)], "", fill, floats32=True
         )
+        for i, b in zip(idx.tolist(), msgs, strict=True):
+            out[i] = b
+    return out
+
+
+def encode_uwb_range(
+    t_ns: NDArray[np.int64],
+    anchor_ids: Sequence[str],
+    anchor: np.ndarray,
+    rng: np.ndarray,
+    rssi_dbm: np.ndarray,
+    first_path_dbm: np.ndarray,
+    frame_id: str = "uwb_tag",
+) -> list[bytes]:
+    """`msgdefs.UWB_RANGE`: anchor_id (text), range (m), rssi and first_path_power (dBm),
+    all float32; `anchor` indexes `anchor_ids`."""
+    n = len(t_ns)
+    out: list[bytes] = [b""] * n
+    anchor = np.asarray(anchor)
+    for a in np.unique(anchor):
+        idx = np.flatnonzero(anchor == a)
+        fill = {0: np.asarray(rng)[idx], 1: np.asarray(rssi_dbm)[idx],
+                2: np.asarray(first_path_dbm)[idx]}
+        msgs = _encode_group(msgdefs.UWB_RANGE, np.asarray(t_ns)[idx], frame_id,
+                             anchor_ids[int(a)], fill, floats32=True)
         for i, b in zip(idx.tolist(), msgs, strict=True):
             out[i] = b
     return out

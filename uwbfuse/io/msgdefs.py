@@ -13,6 +13,9 @@ RANGE = "sensor_msgs/msg/Range"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
+# the simulator's range type with signal quality (fields read through the [uwb] mapping:
+# anchor_id, range in m, rssi and first_path_power in dBm)
+UWB_RANGE = "uwbfuse_msgs/msg/UwbRange"
 
 _SEP = "=" * 80
 
@@ -45,6 +48,10 @@ _DEFS: dict[str, str] = {
         "float32 min_range\nfloat32 max_range\nfloat32 range"
     ),
     POSE_STAMPED: "std_msgs/Header header\ngeometry_msgs/Pose pose",
+    UWB_RANGE: (
+        "std_msgs/Header header\nstring anchor_id\nfloat32 range\nfloat32 rssi\n"
+        "float32 first_path_power"
+    ),
     TRANSFORM_STAMPED: (
         "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform"
     ),
@@ -67,6 +74,7 @@ _DEPS: dict[str, tuple[str, ...]] = {
     TRANSFORM_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Transform",
                         "geometry_msgs/Vector3", "geometry_msgs/Quaternion"),
     JOINT_STATE: ("std_msgs/Header", "builtin_interfaces/Time"),
+    UWB_RANGE: ("std_msgs/Header", "builtin_interfaces/Time"),
 }
 
 

@@ -42,7 +42,7 @@ from uwbfuse.io.fields import (
 )
 from uwbfuse.io.mcap_raw import MessageRefs, RawChannel, ScanResult
 from uwbfuse.io.rosbag2 import scan_log
-from uwbfuse.io.writer import ANCHORS_METADATA, MAP_METADATA
+from uwbfuse.io.writer import ANCHORS_METADATA, MAP_METADATA, UWB_FIELDS_METADATA
 from uwbfuse.streams import (
     AnchorMap,
     ImuStream,
@@ -68,12 +68,16 @@ SKIP_RANGE_BOUNDS = "range outside [min_range, max_range]"
 SKIP_NO_WHEEL_JOINTS = "joint state without the configured wheel joints"
 SKIP_BAD_STAMP = "negative or unreadable stamp"
 SKIP_FAR_STAMP = "stamp far from the rest of the log"
+SKIP_BAD_POWER = "missing, non-finite or implausible signal power (range kept without it)"
 SKIP_LONG_ANCHOR_ID = f"anchor id longer than {MAX_ANCHOR_ID_CHARS} characters"
 
 # Physical bounds on the sensor values read (beyond them a sample is corrupt, not a
 # reading): counted skips, as NaN values are.
 MAX_GYRO_RAD_S = 200.0  # 11,500 deg/s: 5x the full scale of the fastest MEMS gyros
 MAX_ACCEL_M_S2 = 2000.0  # 200 g: the range of high-g shock accelerometers
+# dBm: UWB receivers report about -60 to -110 dBm; beyond these a power value is corrupt
+# (+50 dBm is 100 W radiated, -200 dBm is far below the thermal noise of any bandwidth)
+MIN_POWER_DBM, MAX_POWER_DBM = -200.0, 50.0
 MAX_WHEEL_SPEED_M_S = 100.0  # 360 km/h: no wheeled indoor vehicle comes near
 MAX_WHEEL_YAW_RATE_RAD_S = 100.0  # 16 turns per second
 # Sensor stamps more than this from every other sensor stamp are another recording or a
@@ -299,8 +303,9 @@ def _extract_generic(
             ids = np.empty(len(rows), dtype=object)
             ids[:] = [r[0] for r in rows]
             rng = np.array([r[1] for r in rows], dtype=np.float64)
+            nan = np.full(len(rows), np.nan)
             cols.add(stamps[k], log_time[k], anchor=ids, range=rng,
-                     valid=np.ones(len(rows), bool))
+                     valid=np.ones(len(rows), bool), rssi=nan, first_path=nan)
     except MissingField as e:
         raise _FieldError(str(e.args[0])) from None
 
@@ -337,34 +342,51 @@ def _mapped_ranges(
     msgs: list[Any], stamps: np.ndarray, log_time: np.ndarray, cols: _Columns, config: Config,
     report: ReadReport, topic: str,
 ) -> None:
-    """Ranges of a non-Range type through the [uwb] field mapping (arrays included)."""
+    """Ranges of a non-Range type through the [uwb] field mapping (arrays included), with
+    the optional signal-quality fields (NaN where a message lacks them)."""
     u = config.uwb
-    t_out, lt_out, ids, rng, valid = [], [], [], [], []
+    t_out, lt_out, ids, rng, valid, rssi, fp = [], [], [], [], [], [], []
     bad = 0
     for m, t, lt in zip(msgs, stamps.tolist(), log_time.tolist(), strict=True):
         try:
             elems = get_path(m, u.array_field) if u.array_field else (m,)
             got = [(anchor_key(get_path(e, u.anchor_field)),
                     _to_float(get_path(e, u.range_field)),
-                    is_valid(get_path(e, u.valid_field)) if u.valid_field else True)
+                    is_valid(get_path(e, u.valid_field)) if u.valid_field else True,
+                    _optional_float(e, u.rssi_field),
+                    _optional_float(e, u.first_path_power_field))
                    for e in elems]
         except MissingField:
             raise
         except _BAD_VALUE:  # an "array" that is a number, elements without fields
             bad += 1
             continue
-        for a, r, ok in got:
+        for a, r, ok, p_rx, p_fp in got:
             t_out.append(t)
             lt_out.append(lt)
             ids.append(a)
             rng.append(r)
             valid.append(ok)
+            rssi.append(p_rx)
+            fp.append(p_fp)
     report.skip(skip_malformed(topic), bad)
     anchor = np.empty(len(ids), dtype=object)
     anchor[:] = ids
     cols.add(np.array(t_out, dtype=np.int64), np.array(lt_out, dtype=np.int64),
              anchor=anchor, range=np.array(rng, dtype=np.float64),
-             valid=np.array(valid, dtype=bool))
+             valid=np.array(valid, dtype=bool),
+             rssi=np.array(rssi, dtype=np.float64), first_path=np.array(fp, dtype=np.float64))
+
+
+def _optional_float(elem: Any, path: str) -> float | None:
+    """The number at `path` (NaN when `path` is '' or not a number); None where the element
+    has no such field (the range is kept without it: `_signal_power` counts both)."""
+    if not path:
+        return math.nan
+    try:
+        return _to_float(get_path(elem, path))
+    except MissingField:
+        return None
 
 
 def _to_float(v: Any) -> float:
@@ -395,8 +417,9 @@ def _fast_columns(sink: _ChannelSink, role: str, cols: _Columns) -> None:
         elif role == GT:
             cols.add(c["t_ns"], lt, position=c["position"], quat=c["quat"])
         else:
+            nan = np.full(len(lt), np.nan)
             cols.add(c["t_ns"], lt, anchor=c["frame_id"], range=c["range"],
-                     valid=np.ones(len(lt), dtype=bool))
+                     valid=np.ones(len(lt), dtype=bool), rssi=nan, first_path=nan)
 
 
 def _type_problem(sink: _ChannelSink, role: str) -> str | None:
@@ -606,6 +629,7 @@ def _range_stream(
     ids = c.cat("anchor", dtype=object)
     rng = c.cat("range")
     valid = c.cat("valid", dtype=bool)
+    power = [c.cat("rssi"), c.cat("first_path")]
     keep = t >= 0
     report.skip(SKIP_BAD_STAMP, int((~keep).sum()))
     report.skip(SKIP_INVALID_FLAG, int((keep & ~valid).sum()))
@@ -648,6 +672,8 @@ def _range_stream(
         report.skip(reason, int(drop.sum()))
         keep &= ~drop
     t, anchor, rng = t[keep], anchor[keep], rng[keep]
+    power = [_signal_power(p[keep], report) if name else None
+             for p, name in zip(power, (u.rssi_field, u.first_path_power_field), strict=True)]
     if anchors is not None and u.range_offset:
         off = np.array([u.range_offset.get(a, 0.0) for a in anchors.ids], dtype=np.float64)
         rng = rng - off[anchor]
@@ -655,8 +681,22 @@ def _range_stream(
         if stray:
             report.warnings.append(f"[uwb.range_offset] names unknown anchors: "
                                    f"{', '.join(stray)}")
-    t, anchor, rng = _rows(_sort_dedup(t, [anchor, rng], "uwb", report), t, anchor, rng)
-    return RangeStream(t, anchor.astype(np.int32), rng)
+    sel = _sort_dedup(t, [anchor, rng], "uwb", report)
+    t, anchor, rng = _rows(sel, t, anchor, rng)
+    rx, first = (None if p is None else _rows(sel, p)[0] for p in power)
+    return RangeStream(t, anchor.astype(np.int32), rng, rx, first)
+
+
+def _signal_power(p: np.ndarray, report: ReadReport) -> np.ndarray:
+    """Signal powers (dBm) of a configured field with the missing, non-finite and
+    implausible values set to NaN and counted: the range stays, without that power."""
+    p = p.copy()
+    bad = ~np.isfinite(p)
+    with np.errstate(invalid="ignore"):
+        bad |= (p < MIN_POWER_DBM) | (p > MAX_POWER_DBM)
+    report.skip(SKIP_BAD_POWER, int(bad.sum()))
+    p[bad] = np.nan
+    return p
 
 
 def _anchor_xyz(text: str) -> list[float] | None:
@@ -693,6 +733,25 @@ def _metadata_anchors(source: str, scans: list[ScanResult]) -> AnchorMap | None:
             if out:
                 return AnchorMap.from_dict(out)
     return None
+
+
+# the [uwb] keys a log's `uwb_fields` metadata record may fill in (where the config leaves
+# them empty): the simulator names its signal-quality fields this way, so `run` needs no
+# config
+_LOG_FIELDS = ("rssi_field", "first_path_power_field")
+
+
+def _with_log_fields(config: Config, scans: list[ScanResult]) -> Config:
+    """`config` with the empty `_LOG_FIELDS` taken from the log's `uwb_fields` record."""
+    fill: dict[str, str] = {}
+    for scan in scans:
+        for name, data in scan.metadata:
+            if name == UWB_FIELDS_METADATA:
+                fill.update({k: v for k, v in data.items() if k in _LOG_FIELDS
+                             and not getattr(config.uwb, k) and len(v) <= 1000})
+    if not fill:
+        return config
+    return config.model_copy(update={"uwb": config.uwb.model_copy(update=fill)})
 
 
 def _metadata_map(source: str, scans: list[ScanResult]) -> MapConfig | None:
@@ -807,6 +866,7 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
         )
 
     roles = {r: _Role() for r in ROLES}
+    config = _with_log_fields(config, scans)
     _collect(source, sinks, roles, config, report)
     anchors = (AnchorMap.from_dict(dict(config.anchors)) if config.anchors
                else _metadata_anchors(source, scans))

@@ -3,7 +3,8 @@
 
 Topics and types (CONTRACT.md): /imu `sensor_msgs/msg/Imu` (frame imu_link), /wheel_odom
 `nav_msgs/msg/Odometry` (odom -> base_link, twist.linear.x = v, twist.angular.z = omega),
-/uwb/range `sensor_msgs/msg/Range` (header.frame_id = anchor id), /ground_truth
+/uwb/range `sensor_msgs/msg/Range` (header.frame_id = anchor id; `uwbfuse_msgs/msg/UwbRange`
+with a `uwb_fields` metadata record when the ranges carry signal quality), /ground_truth
 `geometry_msgs/msg/PoseStamped` (frame map). Every message's log time is its header stamp.
 
 Messages are encoded by the vectorised encoders of `cdr_fast` (byte-identical to
@@ -30,6 +31,11 @@ from uwbfuse.streams import AnchorMap, SensorLog
 
 ANCHORS_METADATA = "uwb_anchors"
 MAP_METADATA = "map_obstacles"
+# [uwb] field names of the log's range type ({"rssi_field": "rssi", ...}): the reader fills
+# the config's empty signal-quality keys from it
+UWB_FIELDS_METADATA = "uwb_fields"
+# what a log with signal quality writes: `msgdefs.UWB_RANGE`'s fields
+SIGNAL_FIELDS = {"rssi_field": "rssi", "first_path_power_field": "first_path_power"}
 LIBRARY = "uwbfuse"
 
 _COMPRESSION = ("zstd", "lz4", "none")
@@ -74,8 +80,12 @@ def _encode_streams(
         r = log.ranges
         if log.anchors is None:
             raise ValueError("cannot write ranges without an anchor map (ids unknown)")
-        out.append((topics.uwb, msgdefs.RANGE, r.t_ns,
-                    cdr_fast.encode_range(r.t_ns, log.anchors.ids, r.anchor, r.range)))
+        if r.rssi_dbm is not None and r.first_path_dbm is not None:
+            out.append((topics.uwb, msgdefs.UWB_RANGE, r.t_ns, cdr_fast.encode_uwb_range(
+                r.t_ns, log.anchors.ids, r.anchor, r.range, r.rssi_dbm, r.first_path_dbm)))
+        else:
+            out.append((topics.uwb, msgdefs.RANGE, r.t_ns,
+                        cdr_fast.encode_range(r.t_ns, log.anchors.ids, r.anchor, r.range)))
     if log.ground_truth is not None and len(log.ground_truth):
         g = log.ground_truth
         out.append((topics.ground_truth, msgdefs.POSE_STAMPED, g.t_ns,
@@ -114,9 +124,13 @@ def write_contract_log(
     datas = [every[i] for i in order.tolist()]
     meta = anchors_metadata(log)
     obstacles = map_metadata(log)
+    r = log.ranges
+    fields = (SIGNAL_FIELDS if r is not None and r.rssi_dbm is not None
+              and r.first_path_dbm is not None else {})
     with atomic_open(path, "wb", error=LogWriteError, what="log", fsync=True) as f:
         write_mcap(f, schemas=schemas, channels=channels, channel=which[order],
                    log_time=stamps[order], datas=datas,
                    metadata=([(ANCHORS_METADATA, meta)] if meta else [])
-                   + ([(MAP_METADATA, obstacles)] if obstacles else []),
+                   + ([(MAP_METADATA, obstacles)] if obstacles else [])
+                   + ([(UWB_FIELDS_METADATA, fields)] if fields else []),
                    library=LIBRARY, compression=compression, chunk_size=chunk_size)

@@ -134,12 +134,15 @@ def weighted_fix(
     tag_z: F64 | float | None = None,
     nearest: int | None = None,
     iterations: int = 3,
+    p_nlos: F64 | None = None,
 ) -> WeightedFixes:
     """NLOS-weighted fixes (Qiu eq. 10-11) for N epochs of ranges rng (N,M) (m, NaN missing).
 
     Start: Huber Gauss-Newton with each anchor's mixture std. Then repeat: residuals ->
     NLOS probabilities p -> weights 1 / ((1-p) los^2 + p nlos^2) and ranges corrected by the
     expected excess p * nlos_mean -> weighted linear LS (eq. 10) -> weighted Gauss-Newton.
+    `p_nlos` (N,M), when given (the learned classifier's P(NLOS) per range, NaN = unknown:
+    the prior), replaces the residual-based probabilities in every round.
     """
     pos_a = anchors.positions
     rng = np.atleast_2d(np.asarray(rng, dtype=np.float64)).copy()
@@ -153,14 +156,19 @@ def weighted_fix(
     fx = multilaterate(pos_a, start, dim=dim, tag_z=tag_z, sigma=sig0[None, :],
                        kernel=RobustKernel.HUBER, threshold=1.345)
     p = np.broadcast_to(prior, rng.shape).copy()
+    given = None if p_nlos is None else np.where(np.isfinite(p_nlos), p_nlos, p)
     n = len(rng)
     for _ in range(iterations):
         pos = np.where(np.isfinite(fx.position), fx.position, 0.0)
-        pred = np.linalg.norm(pos[:, None, :] - pos_a[None, :, :], axis=2)
-        res = rng - pred
-        pos_var = np.nan_to_num(np.trace(fx.cov, axis1=1, axis2=2), nan=1.0)
-        p = nlos_probability(res, los, nmean, nstd, prior, extra_var=pos_var[:, None] / dim)
-        p = np.where(fx.ok[:, None], p, prior)
+        if given is not None:
+            p = given
+        else:
+            pred = np.linalg.norm(pos[:, None, :] - pos_a[None, :, :], axis=2)
+            res = rng - pred
+            pos_var = np.nan_to_num(np.trace(fx.cov, axis1=1, axis2=2), nan=1.0)
+            p = nlos_probability(res, los, nmean, nstd, prior,
+                                 extra_var=pos_var[:, None] / dim)
+            p = np.where(fx.ok[:, None], p, prior)
         var = (1 - p) * np.maximum(los, _MIN_LOS_STD) ** 2 + p * nstd**2
         corrected = rng - p * nmean
         sigma = np.sqrt(var)

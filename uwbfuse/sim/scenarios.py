@@ -106,6 +106,8 @@ class Scenario:
     nlos_dropout_prob: float = 0.05  # lost ranges while NLOS
     outage: tuple[float, float] | None = None  # no ranges in [start, end), s from log start
     anchor_offset_max: float = 0.0  # constant per-anchor offset, uniform +-, m
+    # write RX and first-path power with each range (`sim.signal`; a custom range type)
+    signal_quality: bool = False
 
     def anchor_dict(self) -> dict[str, Vec3]:
         return dict(self.anchors)

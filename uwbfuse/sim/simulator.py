@@ -27,6 +27,7 @@ from uwbfuse.config import MapConfig
 from uwbfuse.errors import SimulationError
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
 from uwbfuse.sim.sensors import imu_samples, uwb_ranges, wheel_samples
+from uwbfuse.sim.signal import signal_powers
 from uwbfuse.sim.trajectory import MotionParams, Timeline, build_timeline, evaluate
 from uwbfuse.streams import (
     NS_PER_S,
@@ -42,6 +43,8 @@ __all__ = ["SCENARIOS", "SimResult", "simulate", "simulate_with_truth"]
 
 log = logging.getLogger(__name__)
 
+POWER_STREAM = 10  # spawn key of the signal powers' random stream
+
 F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
@@ -51,8 +54,9 @@ class SimResult:
     """A simulated log and its hidden truth. Arrays align with the log's streams.
 
     Ranges (one per `log.ranges` row): true_range m (tag antenna to anchor), nlos and
-    outlier masks, nlos_excess m (added NLOS delay, 0 when LOS); anchor_offset (M,) m is
-    the constant per-anchor offset. IMU (one per `log.imu` row, IMU frame): accel_bias
+    outlier masks, nlos_excess m (added NLOS delay, 0 when LOS), rx_dbm / fp_dbm the total
+    and first-path powers (dBm, also when the log does not carry them); anchor_offset (M,)
+    m is the constant per-anchor offset. IMU (one per `log.imu` row, IMU frame): accel_bias
     m/s^2 and gyro_bias rad/s (turn-on + random walk), the noiseless imu_accel/imu_gyro.
     Truth at the IMU stamps: velocity (N,3) m/s of the base in the map frame, yaw rad
     (unwrapped), moving mask. Wheels (one per `log.wheel` row): slip mask, true interval
@@ -83,6 +87,8 @@ class SimResult:
     standstill_ns: tuple[int, int] | None
     still_intervals_ns: tuple[tuple[int, int], ...]
     timeline: Timeline
+    rx_dbm: F64 | None = None
+    fp_dbm: F64 | None = None
 
     @property
     def nlos_fraction(self) -> float:
@@ -168,13 +174,18 @@ def simulate_with_truth(
 
     # UWB
     rs = uwb_ranges(sc, tl, duration_s, uwb_rng)
+    # signal powers from a stream of their own (child 10 of the seed: the sensors' children
+    # 0-2 are unchanged whether or not the powers are written)
+    power_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(POWER_STREAM,)))
+    rx_dbm, fp_dbm = signal_powers(rs.true_range, rs.nlos, rs.nlos_excess, power_rng)
 
     anchors = AnchorMap.from_dict(sc.anchor_dict())
     sensor_log = SensorLog(
         imu=ImuStream(t_imu_ns, imu.gyro, imu.accel) if "imu" in sc.streams else None,
         wheel=WheelStream(_to_ns(sc.t0_ns, t_wh), wh.v, wh.omega)
         if "wheel" in sc.streams else None,
-        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range)
+        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range,
+                           *((rx_dbm, fp_dbm) if sc.signal_quality else (None, None)))
         if "uwb" in sc.streams else None,
         anchors=anchors,
         ground_truth=PoseStream(t_imu_ns, pos, quat, True),
@@ -212,6 +223,8 @@ def simulate_with_truth(
         standstill_ns=standstill,
         still_intervals_ns=stills_ns,
         timeline=tl,
+        rx_dbm=rx_dbm,
+        fp_dbm=fp_dbm,
     )
 
 

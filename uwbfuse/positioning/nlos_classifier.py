@@ -1,0 +1,354 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""Learned NLOS classifier (patent CN114608572B steps S1-S2): a random forest on per-range
+features, its labels from ground truth, and its model file.
+
+Features, per range, all causal (from the range itself and what came before it):
+
+- `residual`: measured range minus the distance from the anchor to a causal reference
+  position of the tag; `residual_jump`: its change since the anchor's previous range;
+- `range_jump`, `range_rate`: the change of the measured range since the anchor's previous
+  range (m) and that change per second (m/s);
+- `distance`: the measured range (m); `elevation`: the anchor's elevation angle seen from
+  the reference position (rad);
+- `fix_rms`: the RMS range residual of the reference fix (m: how consistent the epoch was);
+- with signal quality in the log: `rssi_dbm` (received total power) and `rx_minus_fp_db`
+  (total minus first-path power, dB; Decawave APS006: about 6 dB and more suggests NLOS).
+
+The causal reference (the same at training and at run time, whatever the estimator): the
+robust (Huber) multilateration fix of the latest epoch that ended before the range, with
+the geometry the `wls` method uses (2-D at the tag height for wheeled logs); epochs as
+`wls` groups them. It is an estimator-independent stand-in for "the current prediction",
+so a model trained once serves `wls`, `ekf`, `ukf` and the graph alike. Where no fix is
+younger than `MAX_REFERENCE_AGE_S` the position features are NaN (the forest has learnt
+where missing values go).
+
+Labels: a range is NLOS when |measured - true range| > `label_threshold` (default
+`LABEL_THRESHOLD_M`), the true range from the ground-truth pose and `[extrinsics]
+tag_in_base`.
+
+Model file: skops (a zip of JSON and numpy arrays, never a pickle) holding a dict with the
+format name, `FORMAT_VERSION`, the feature list, the label threshold and the forest; loading
+refuses any type beyond `TRUSTED_TYPES`, another format or version and a feature list this
+code does not compute (one-line `ConfigError`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwbfuse.config import Config, RobustKernel
+from uwbfuse.errors import ConfigError, EstimatorError
+from uwbfuse.positioning.multilateration import (
+    default_tag_z,
+    epoch_window_ns,
+    epochs_by_window,
+    group_epochs,
+    multilaterate,
+)
+from uwbfuse.streams import NS_PER_S, AnchorMap, RangeStream, SensorLog
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+FORMAT = "uwbfuse-nlos-classifier"
+FORMAT_VERSION = 1
+# the only non-primitive type a forest's skops file holds (numpy arrays and the estimator
+# classes of scikit-learn are trusted by skops itself)
+TRUSTED_TYPES = ("sklearn.tree._tree.Tree",)
+
+RESIDUAL_FEATURES = ("residual", "residual_jump", "range_jump", "range_rate", "distance",
+                     "elevation", "fix_rms")
+POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db")
+KNOWN_FEATURES = RESIDUAL_FEATURES + POWER_FEATURES
+
+# m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
+# noise but an excess path (NLOS) or a gross ranging fault, and either should be trusted less
+LABEL_THRESHOLD_M = 0.15
+MAX_REFERENCE_AGE_S = 2.0  # s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
+MAX_JUMP_GAP_S = 2.0  # s: a range jump over a longer gap is motion, not a change of path
+MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s)
+
+
+# ------------------------------------------------------------------------------ features
+def _reference_fixes(
+    ranges: RangeStream, anchors: AnchorMap, config: Config, planar: bool
+) -> tuple[NDArray[np.int64], F64, NDArray[np.bool_], F64]:
+    """Epoch times (K,), robust fixes (K,3) of the tag antenna (map frame), ok (K,), and
+    residual RMS (K,) m."""
+    wls = config.wls
+    project = wls.height_projection == "on" or (wls.height_projection == "auto" and planar)
+    if wls.tag_height != "auto":
+        tag_z = float(wls.tag_height)
+    elif project:
+        tag_z = config.init.base_height + float(config.extrinsics.tag_in_base[2])
+    else:
+        tag_z = default_tag_z(anchors.positions)
+    dim = 2 if project or len(anchors) < 4 else 3
+    base = round(max(wls.window, MIN_EPOCH_WINDOW_S) * NS_PER_S)
+    window = epoch_window_ns(ranges.t_ns, ranges.anchor, base)
+    ep = epochs_by_window(ranges.t_ns, window)
+    grid, _ = group_epochs(ranges.t_ns, ranges.anchor, ranges.range, len(anchors), ep, window)
+    if not len(ep):
+        return ep, np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0)
+    fx = multilaterate(anchors.positions, grid, dim=dim, tag_z=tag_z,
+                       sigma=config.uwb.sigma, kernel=RobustKernel.HUBER, threshold=1.345)
+    enough = np.count_nonzero(np.isfinite(grid), axis=1) >= dim + 1
+    return ep, fx.position, fx.ok & enough, fx.residual_rms
+
+
+def _previous_same_anchor(t: NDArray[np.int64], a: NDArray[np.int32]) -> NDArray[np.int64]:
+    """Index of each range's previous range from the same anchor (-1 for the first)."""
+    order = np.lexsort((t, a))
+    prev = np.full(len(t), -1, dtype=np.int64)
+    same = a[order][1:] == a[order][:-1]
+    prev[order[1:][same]] = order[:-1][same]
+    return prev
+
+
+def range_features(
+    ranges: RangeStream, anchors: AnchorMap, config: Config, planar: bool
+) -> tuple[F64, tuple[str, ...]]:
+    """Features (N,F) of every range and their names (`RESIDUAL_FEATURES`, then
+    `POWER_FEATURES` when the stream carries both powers). `planar`: a wheeled log (the
+    reference fixes are 2-D at the tag height, as `wls` makes them)."""
+    n = len(ranges)
+    names = RESIDUAL_FEATURES
+    with_power = ranges.rssi_dbm is not None and ranges.first_path_dbm is not None
+    if with_power:
+        names = names + POWER_FEATURES
+    x = np.full((n, len(names)), np.nan)
+    if n == 0:
+        return x, names
+    t, a, z = ranges.t_ns, ranges.anchor, ranges.range
+    ep, pos, ok, rms = _reference_fixes(ranges, anchors, config, planar)
+    # the latest usable fix of an epoch that ended before each range
+    good = np.flatnonzero(ok)
+    j = np.searchsorted(ep[good], t, side="left") - 1 if len(good) else np.full(n, -1)
+    has = j >= 0
+    k = good[np.maximum(j, 0)] if len(good) else np.zeros(n, dtype=np.int64)
+    has &= (t - ep[k]) <= round(MAX_REFERENCE_AGE_S * NS_PER_S)
+    ap = anchors.positions[a]
+    d = ap - pos[k]
+    pred = np.linalg.norm(d, axis=1)
+    res = np.where(has, z - pred, np.nan)
+    elev = np.where(has, np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])), np.nan)
+    prev = _previous_same_anchor(t, a)
+    dt = np.where(prev >= 0, (t - t[np.maximum(prev, 0)]) / NS_PER_S, np.nan)
+    recent = (prev >= 0) & (dt <= MAX_JUMP_GAP_S) & (dt > 0)
+    jump = np.where(recent, z - z[np.maximum(prev, 0)], np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(recent, jump / np.where(recent, dt, 1.0), np.nan)
+    res_jump = np.where(recent, res - res[np.maximum(prev, 0)], np.nan)
+    cols = {"residual": res, "residual_jump": res_jump, "range_jump": jump,
+            "range_rate": rate, "distance": z, "elevation": elev,
+            "fix_rms": np.where(has, rms[k], np.nan)}
+    if with_power:
+        assert ranges.rssi_dbm is not None and ranges.first_path_dbm is not None
+        cols["rssi_dbm"] = ranges.rssi_dbm
+        cols["rx_minus_fp_db"] = ranges.rssi_dbm - ranges.first_path_dbm
+    for i, name in enumerate(names):
+        x[:, i] = cols[name]
+    return x, names
+
+
+def log_features(log: SensorLog, config: Config) -> tuple[F64, tuple[str, ...]]:
+    """`range_features` of a log's ranges (planar when it has wheels)."""
+    if log.ranges is None or log.anchors is None:
+        raise EstimatorError(f"{log.source}: the NLOS classifier needs ranges and an anchor "
+                             "map")
+    return range_features(log.ranges, log.anchors, config, log.wheel is not None)
+
+
+def range_labels(log: SensorLog, config: Config, threshold: float = LABEL_THRESHOLD_M
+                 ) -> tuple[NDArray[np.int8], F64]:
+    """Labels (N,) 1 = NLOS (|measured - true range| > threshold m), 0 = LOS, -1 = unknown
+    (outside the ground truth's time span), and the errors (N,) m."""
+    from uwbfuse.positioning.nlos_model import range_errors
+
+    err, _ = range_errors(log, config)
+    lab = np.where(np.isfinite(err), (np.abs(err) > threshold).astype(np.int8), -1)
+    return lab.astype(np.int8), err
+
+
+# --------------------------------------------------------------------------------- model
+@dataclass
+class NlosClassifier:
+    """A trained forest and what it was made for: feature names, the label threshold (m)."""
+
+    features: tuple[str, ...]
+    forest: Any  # sklearn.ensemble.RandomForestClassifier
+    label_threshold: float = LABEL_THRESHOLD_M
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def predict(self, x: F64) -> F64:
+        """P(NLOS) (N,) for features x (N,F) in `self.features` order."""
+        if not len(x):
+            return np.zeros(0)
+        proba = self.forest.predict_proba(x)
+        classes = list(self.forest.classes_)
+        if 1 not in classes:
+            return np.zeros(len(x))
+        return np.asarray(proba[:, classes.index(1)], dtype=np.float64)
+
+    def predict_log(self, log: SensorLog, config: Config) -> F64:
+        """P(NLOS) of every range of `log`; a log without a feature the model needs (signal
+        quality) is a ConfigError."""
+        x, names = log_features(log, config)
+        missing = [f for f in self.features if f not in names]
+        if missing:
+            raise ConfigError(
+                f"{log.source}: the NLOS classifier was trained with {', '.join(missing)}, "
+                "which this log's ranges do not carry (set [uwb] rssi_field and "
+                "first_path_power_field, or train a model without them)")
+        cols = [names.index(f) for f in self.features]
+        return self.predict(x[:, cols])
+
+    def save(self, path: str | Path) -> None:
+        """Write the skops model file (atomically)."""
+        import skops.io as sio
+
+        from uwbfuse.errors import LogWriteError
+        from uwbfuse.io.atomic import atomic_open
+
+        obj = {"format": FORMAT, "version": FORMAT_VERSION, "features": list(self.features),
+               "label_threshold_m": float(self.label_threshold), "info": dict(self.info),
+               "forest": self.forest}
+        data = sio.dumps(obj)
+        with atomic_open(Path(path), "wb", error=LogWriteError, what="model") as f:
+            f.write(data)
+
+
+def train_classifier(
+    x: F64, y: NDArray[np.integer], features: tuple[str, ...], *, n_trees: int = 100,
+    min_leaf: int = 5, seed: int = 0, label_threshold: float = LABEL_THRESHOLD_M,
+    info: dict[str, Any] | None = None,
+) -> NlosClassifier:
+    """Fit a random forest (scikit-learn) on features x (N,F) and labels y (N,) in {0, 1}."""
+    from sklearn.ensemble import RandomForestClassifier
+
+    forest = RandomForestClassifier(n_estimators=n_trees, min_samples_leaf=min_leaf,
+                                    random_state=seed, n_jobs=1)
+    forest.fit(x, y)
+    return NlosClassifier(tuple(features), forest, label_threshold, dict(info or {}))
+
+
+def load_classifier(path: str | Path) -> NlosClassifier:
+    """Read a model file of `train-nlos`; ConfigError (one line) for a file that is not
+    one (a pickle, a random file, another skops object), of another format version, or
+    made for features this version does not compute."""
+    import skops.io as sio
+
+    p = Path(path)
+    what = f"[nlos] classifier {p}"
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise ConfigError(f"{what}: cannot read the model file: {e.strerror or e}") from None
+    try:
+        untrusted = sio.get_untrusted_types(data=data)
+    except Exception as e:  # not a zip, no schema: zipfile / json / key errors
+        raise ConfigError(f"{what}: not an NLOS classifier model written by `uwbfuse "
+                          f"train-nlos` ({type(e).__name__}: {_short(e)})") from None
+    bad = [u for u in untrusted if u not in TRUSTED_TYPES]
+    if bad:
+        raise ConfigError(f"{what}: the file holds types a model never does "
+                          f"({', '.join(bad[:3])}); refused")
+    try:
+        obj = sio.loads(data, trusted=list(untrusted))
+    except Exception as e:  # a tampered or truncated archive
+        raise ConfigError(f"{what}: unreadable model file ({type(e).__name__}: "
+                          f"{_short(e)})") from None
+    if not isinstance(obj, dict) or obj.get("format") != FORMAT:
+        raise ConfigError(f"{what}: not an NLOS classifier model written by `uwbfuse "
+                          "train-nlos`")
+    if obj.get("version") != FORMAT_VERSION:
+        raise ConfigError(f"{what}: model format version {obj.get('version')!r}, this "
+                          f"uwbfuse reads version {FORMAT_VERSION}; train it again")
+    feats = obj.get("features")
+    if (not isinstance(feats, list) or not feats
+            or not all(isinstance(f, str) and f in KNOWN_FEATURES for f in feats)
+            or len(set(feats)) != len(feats)):
+        raise ConfigError(f"{what}: made for other features ({_short(feats)}); this uwbfuse "
+                          f"computes {', '.join(KNOWN_FEATURES)}")
+    forest = obj.get("forest")
+    from sklearn.ensemble import RandomForestClassifier
+
+    if (not isinstance(forest, RandomForestClassifier)
+            or getattr(forest, "n_features_in_", None) != len(feats)):
+        raise ConfigError(f"{what}: the model's forest does not match its feature list")
+    thr = obj.get("label_threshold_m", LABEL_THRESHOLD_M)
+    info = obj.get("info") if isinstance(obj.get("info"), dict) else {}
+    return NlosClassifier(tuple(feats), forest, float(thr), info)
+
+
+def _short(v: object) -> str:
+    s = " ".join(str(v).split())
+    return s if len(s) <= 80 else s[:77] + "..."
+
+
+def classifier_priors(log: SensorLog, config: Config) -> F64 | None:
+    """P(NLOS) (N,) of each range of `log` from `[nlos] classifier`, or None without one."""
+    if not config.nlos.classifier:
+        return None
+    model = load_classifier(config.nlos.classifier)
+    p = model.predict_log(log, config)
+    if len(p):
+        log_ = logging.getLogger(__name__)
+        log_.debug("%s: classifier P(NLOS) mean %.3f over %d ranges", log.source,
+                   float(np.mean(p)), len(p))
+    return p
+
+
+# -------------------------------------------------------------------- per-range lookup
+class RangePriors:
+    """P(NLOS) per range of a whole stream, looked up by the batches an estimator is fed.
+
+    The driving loop hands each estimator consecutive slices of the range stream; `take`
+    matches a batch by its stamps and anchors (a cursor, with a search where batches skip).
+    A range it cannot match gets `default`.
+    """
+
+    def __init__(self, t_ns: NDArray[np.int64], anchor: NDArray[np.int32], p: F64,
+                 default: float = math.nan) -> None:
+        self.t_ns = np.asarray(t_ns, dtype=np.int64)
+        self.anchor = np.asarray(anchor, dtype=np.int32)
+        self.p = np.asarray(p, dtype=np.float64)
+        self.default = default
+        self._cursor = 0
+
+    def take(self, t_ns: NDArray[np.int64], anchor: NDArray[np.integer]) -> F64:
+        """P(NLOS) (N,) of a batch (stamps, anchor indices)."""
+        n = len(t_ns)
+        c = self._cursor
+        if (c + n <= len(self.t_ns) and np.array_equal(self.t_ns[c:c + n], t_ns)
+                and np.array_equal(self.anchor[c:c + n], anchor)):
+            self._cursor = c + n
+            return self.p[c:c + n].copy()
+        out = np.full(n, self.default)
+        lo = np.searchsorted(self.t_ns, t_ns, side="left")
+        hi = np.searchsorted(self.t_ns, t_ns, side="right")
+        for i in np.flatnonzero(hi > lo).tolist():  # only after a skipped batch
+            hit = np.flatnonzero(self.anchor[lo[i]:hi[i]] == anchor[i])
+            if len(hit):
+                out[i] = self.p[lo[i] + hit[0]]
+        if n:
+            self._cursor = int(hi[-1])
+        return out
+
+
+def set_range_priors(estimator: object, priors: RangePriors) -> bool:
+    """Give `estimator` the classifier's priors where it takes them (`use_range_priors`);
+    whether it did."""
+    use = getattr(estimator, "use_range_priors", None)
+    if not callable(use):
+        return False
+    use(priors)
+    return True
