@@ -143,16 +143,18 @@ def _classifier_priors(
         return lambda _est: None
     from uwbfuse.positioning.nlos_classifier import (
         RangePriors,
-        classifier_priors,
+        load_classifier,
         set_range_priors,
     )
 
-    p = classifier_priors(log, config)
-    assert p is not None and log.ranges is not None
+    model = load_classifier(config.nlos.classifier)
+    p = model.predict_log(log, config)
+    assert log.ranges is not None
     t, a = log.ranges.t_ns, log.ranges.anchor
+    base = float(model.info.get("nlos_share", 0.5))
 
     def give(est: object) -> None:
-        if not set_range_priors(est, RangePriors(t, a, p)):
+        if not set_range_priors(est, RangePriors(t, a, p, base_rate=base)):
             logging.getLogger(__name__).info("%s: this method does not take the NLOS "
                                              "classifier's priors", type(est).__name__)
 

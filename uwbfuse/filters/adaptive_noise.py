@@ -118,15 +118,19 @@ class RangeNoise:
             self.prior = replace(self.prior, los_std=float(los_std))
 
     def weigh(
-        self, anchor: np.ndarray, y: F64, s: F64
+        self, anchor: np.ndarray, y: F64, s: F64, evidence: F64 | None = None,
     ) -> tuple[F64, F64, np.ndarray, F64]:
         """Weigh ranges of anchors `anchor` (M,) with innovations y (M,) m and prediction
         variances s (M,) m^2. Returns the corrected innovations (M,) m, their variances
         (M,) m^2 (mixture posterior, prediction not included), the accepted mask (M,) and
-        the normalised innovations squared (M,). Does not record anything (`accept` does)."""
+        the normalised innovations squared (M,). Does not record anything (`accept` does).
+        `evidence` (M,), nats: the learned NLOS classifier's log-odds per range, added to
+        the prior's (`nlos_classifier.RangePriors.log_odds`)."""
         m = self.model
         prior = (1.0 - self.q) * self.p_last[anchor] + self.q * m.nlos_prior
         prior = np.clip(prior, *P_BOUNDS)
+        if evidence is not None:
+            prior = 1.0 / (1.0 + np.exp(-(np.log(prior / (1.0 - prior)) + evidence)))
         p = nlos_probability(y, np.float64(m.los_std), np.float64(m.nlos_mean),
                              np.float64(m.nlos_std), prior, extra_var=s)
         mu = m.nlos_mean
@@ -232,11 +236,13 @@ def scalar_update(
 
 def sequential_ranges(
     noise: RangeNoise, p: F64, dx: F64, h: F64, y: F64, anchor: np.ndarray, rng: F64,
+    evidence: F64 | None = None,
 ) -> tuple[F64, F64, np.ndarray, F64]:
     """Sequential robust scalar updates of M ranges rng (M,) m (rows h (M,n), innovations
-    y (M,) at dx = 0) in their order. Each range is weighed (`RangeNoise.weigh`) on the innovation
-    and prediction variance left after the ranges before it. Returns P, dx, the accepted
-    mask (M,) and the NIS (M,)."""
+    y (M,) at dx = 0) in their order. Each range is weighed (`RangeNoise.weigh`, with its
+    classifier `evidence` (M,) nats where given) on the innovation and prediction variance
+    left after the ranges before it. Returns P, dx, the accepted mask (M,) and the NIS
+    (M,)."""
     used = np.zeros(len(y), dtype=bool)
     nis = np.zeros(len(y))
     for i in range(len(y)):
@@ -244,7 +250,8 @@ def sequential_ranges(
         yi = float(y[i] - hi @ dx)
         si = float(hi @ p @ hi)
         a = anchor[i : i + 1]
-        yc, var, ok, z = noise.weigh(a, np.array([yi]), np.array([si]))
+        yc, var, ok, z = noise.weigh(a, np.array([yi]), np.array([si]),
+                                     None if evidence is None else evidence[i : i + 1])
         nis[i] = z[0]
         if ok[0]:
             p, dx, _ = scalar_update(p, dx, hi, float(yc[0]), float(var[0]))

@@ -34,6 +34,7 @@ from uwbfuse.filters.models import (
     imu_to_base,
     quat_xyzw_from_matrix,
 )
+from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.streams import AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -213,6 +214,8 @@ class StreamingFilter:
         )
         self.gate_resets = 0
         self.repeated = 0
+        #: the learned NLOS classifier's P(NLOS) per range (`use_range_priors`), or None
+        self.range_priors: RangePriors | None = None
         n_anchor = len(self.anchor_pos)
         self._last_t = np.full(n_anchor, np.iinfo(np.int64).min // 2, dtype=np.int64)
         self._last_r = np.full(n_anchor, np.nan)
@@ -247,6 +250,17 @@ class StreamingFilter:
         self._range_in.chunks.append(
             (np.asarray(t_ns, np.int64), np.asarray(anchor, np.int64), np.asarray(rng, np.float64))
         )
+
+    def use_range_priors(self, priors: RangePriors) -> None:
+        """Weigh each range with the learned NLOS classifier's evidence too (its log-odds
+        join the prior of `RangeNoise.weigh`)."""
+        self.range_priors = priors
+
+    def range_evidence(self, t_ns: np.ndarray, anchor: np.ndarray) -> np.ndarray | None:
+        """The classifier's NLOS log-odds (nats) of ranges (stamps, anchors), or None."""
+        if self.range_priors is None or not len(t_ns):
+            return None
+        return self.range_priors.log_odds(self.range_priors.take(t_ns, anchor))
 
     def step(self, t_ns: int) -> None:
         """Process every buffered sample with stamp <= t_ns in time order; predict to t_ns."""

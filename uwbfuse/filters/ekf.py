@@ -279,7 +279,7 @@ class ErrorStateEkf(StreamingFilter):
         if nr:  # then the ranges one by one, robustly weighted
             self.P, dx0, used, self.nis = sequential_ranges(
                 self.range_noise, self.P, np.zeros(N_ERR) if dx0 is None else dx0,
-                range_h, range_y, ra, rr,
+                range_h, range_y, ra, rr, self.range_evidence(rt, ra),
             )
         phi = pre.phi(-1)
         self.P = phi @ self.P @ phi.T + block_noise(phi, self.q_diag, float(pre.t[-1]))
@@ -402,7 +402,7 @@ class UnicycleEkf(StreamingFilter):
             y = rr - r_hat
             self.short = y < 0.0
             self.P, dx0, used, self.nis = sequential_ranges(
-                self.range_noise, self.P, np.zeros(3), h, y, ra, rr
+                self.range_noise, self.P, np.zeros(3), h, y, ra, rr, self.range_evidence(rt, ra)
             )
         phi, q = unicycle_transition(
             np.diff(xb), np.diff(yb), v, dt, mid[0], self.sigma_v, self.sigma_w

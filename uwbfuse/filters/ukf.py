@@ -93,6 +93,7 @@ def _unscented_update(
     wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
     noise: RangeNoise | None, anchor: np.ndarray,
     row_noise: list[tuple[InnovationVariance, int]] | None = None,
+    evidence: F64 | None = None,
 ) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray]:
     """Update from sigma-point states and predicted measurements.
 
@@ -105,7 +106,7 @@ def _unscented_update(
     (estimator, number of rows) per block. Returns the correction of the central point (n,),
     the posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
     normalised innovations squared of the ranges and which of those measured short (negative
-    innovation).
+    innovation). `evidence` (len(anchor),): the NLOS classifier's log-odds per range, nats.
     """
     nr = len(anchor)
     ex_mean = wts.wm @ ex
@@ -122,7 +123,7 @@ def _unscented_update(
     if nr and noise is not None:
         s_pred = np.diag(pzz)[:nr].copy()
         y_raw = y[:nr].copy()
-        y[:nr], r[:nr], keep[:nr], nis = noise.weigh(anchor, y_raw, s_pred)
+        y[:nr], r[:nr], keep[:nr], nis = noise.weigh(anchor, y_raw, s_pred, evidence)
         noise.accept(anchor, y_raw, s_pred, keep[:nr], z[:nr])
     start = nr
     s_all = np.diag(pzz)
@@ -215,7 +216,7 @@ class ErrorStateUkf(ErrorStateEkf):
         if zs:
             corr, p_prior, self.y, keep, nis, self.short = _unscented_update(
                 wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
-                p_prior, self.range_noise, ra, noise,
+                p_prior, self.range_noise, ra, noise, self.range_evidence(rt, ra),
             )
             used = keep[:nr]
             self.nis = nis
@@ -284,6 +285,7 @@ class UnicycleUkf(UnicycleEkf):
             zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
             corr, p_prior, y, used, self.nis, self.short = _unscented_update(
                 wts, ex, zs, rr, np.zeros(nr), p_prior, self.range_noise, ra,
+                evidence=self.range_evidence(rt, ra),
             )
             self.y = y
         self.P = p_prior

@@ -51,6 +51,7 @@ from uwbfuse.graph.wheel import (
     se2_to_pose3,
 )
 from uwbfuse.positioning.initialisation import range_scale_applies
+from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.start import planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
@@ -119,6 +120,8 @@ class ReviewBatch:
     g: np.ndarray  # responsibility used for the factors
     record: int  # index of the batch in RangeRecords
     t_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # range stamps
+    # the learned classifier's NLOS log-odds per range (nats; 0 without a classifier)
+    evidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     factors: list[list[int]] = field(default_factory=list)  # smoother indices per range
     counted: bool = False  # its smoothed residuals have gone into `add_smoothed_residuals`
 
@@ -135,15 +138,18 @@ class RangeRecords:
     g_online: list[np.ndarray] = field(default_factory=list)
     w_online: list[np.ndarray] = field(default_factory=list)
     r_online: list[np.ndarray] = field(default_factory=list)
+    evidence: list[np.ndarray] = field(default_factory=list)  # classifier log-odds, nats
 
     def arrays(self) -> dict[str, np.ndarray]:
         if not self.k:
             return {"k": np.zeros(0, np.int64), "anchor": np.zeros(0, np.int64),
                     "z": np.zeros(0), "t_ns": np.zeros(0, np.int64),
                     "tag_in_kf": np.zeros((0, 3)), "g_online": np.zeros(0),
-                    "w_online": np.zeros(0), "r_online": np.zeros(0)}
+                    "w_online": np.zeros(0), "r_online": np.zeros(0),
+                    "evidence": np.zeros(0)}
         return {name: np.concatenate(getattr(self, name)) for name in
-                ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online", "r_online")}
+                ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online", "r_online",
+                 "evidence")}
 
 
 @dataclass
@@ -298,6 +304,9 @@ class GraphBuilder:
         self._rt: list[np.ndarray] = []  # pending ranges: (t, anchor, z) chunks
         self._ra: list[np.ndarray] = []
         self._rz: list[np.ndarray] = []
+        self._rq: list[np.ndarray] = []  # the classifier's P(NLOS) of the pending ranges
+        # the learned NLOS classifier's P(NLOS) per range (`use_range_priors`), or None
+        self.priors: RangePriors | None = None
         self.record = record
         self.records = RangeRecords()
         # roll, pitch (rad) and z (m) sigmas of the wheel factor
@@ -354,6 +363,8 @@ class GraphBuilder:
         is not counted twice.
         """
         t_ns, anchor, rng = np.asarray(t_ns), np.asarray(anchor), np.asarray(rng)
+        q = (self.priors.take(t_ns, anchor) if self.priors is not None
+             else np.full(len(t_ns), np.nan))
         dup = np.zeros(len(t_ns), dtype=bool)
         for i, (t, a, r) in enumerate(zip(t_ns.tolist(), anchor.tolist(), rng.tolist(),
                                           strict=True)):
@@ -363,25 +374,33 @@ class GraphBuilder:
             else:
                 self._last_range[a] = (t, r)
         self.repeated_ranges += int(np.count_nonzero(dup))
-        t_ns, anchor, rng = t_ns[~dup], anchor[~dup], rng[~dup]
+        t_ns, anchor, rng, q = t_ns[~dup], anchor[~dup], rng[~dup], q[~dup]
         keep = np.asarray(t_ns) >= self.t0
         self.dropped_ranges += int(np.count_nonzero(~keep))
         if np.any(keep):
             self._rt.append(np.asarray(t_ns, np.int64)[keep])
             self._ra.append(np.asarray(anchor, np.int64)[keep])
             self._rz.append(np.asarray(rng, np.float64)[keep])
+            self._rq.append(q[keep])
 
-    def _take_ranges(self, t_end: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _take_ranges(
+        self, t_end: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pending ranges before `t_end`: stamps, anchors, ranges and classifier P(NLOS)."""
         if not self._rt:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
         t = np.concatenate(self._rt)
         a = np.concatenate(self._ra)
         z = np.concatenate(self._rz)
+        q = np.concatenate(self._rq)
         order = np.argsort(t, kind="stable")
-        t, a, z = t[order], a[order], z[order]
+        t, a, z, q = t[order], a[order], z[order], q[order]
         n = int(np.searchsorted(t, t_end, side="left"))
-        self._rt, self._ra, self._rz = ([t[n:]], [a[n:]], [z[n:]]) if n < len(t) else ([], [], [])
-        return t[:n], a[:n], z[:n]
+        if n < len(t):
+            self._rt, self._ra, self._rz, self._rq = [t[n:]], [a[n:]], [z[n:]], [q[n:]]
+        else:
+            self._rt, self._ra, self._rz, self._rq = [], [], [], []
+        return t[:n], a[:n], z[:n], q[:n]
 
     # ---------------------------------------------------------------- time
     def time_of(self, k: int) -> int:
@@ -629,7 +648,11 @@ class GraphBuilder:
     def _add_ranges(
         self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
     ) -> None:
-        t, a, z_raw = self._take_ranges(t_b)
+        t, a, z_raw, q = self._take_ranges(t_b)
+        # the learned classifier's evidence (nats) adds to each range's NLOS log-likelihood:
+        # with it the range's prior odds of NLOS are the classifier's
+        evidence = (self.priors.log_odds(q) if self.priors is not None
+                    else np.zeros(len(t)))
         if len(t) == 0:
             return
         z = z_raw / (1.0 + self.scale[a]) if self.with_scale else z_raw
@@ -647,6 +670,7 @@ class GraphBuilder:
             e_pred, e_var = self._predict_nlos_state(a, seg)
             r_nlos = z - pred - e_pred
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
+            ll_n = ll_n + evidence
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
             for anc in np.unique(a):
                 sel = np.flatnonzero(a == anc)
@@ -673,7 +697,7 @@ class GraphBuilder:
         rec = self.records
         if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
-                                            len(rec.k), t_ns=t), slots))
+                                            len(rec.k), t_ns=t, evidence=evidence), slots))
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
         rec.z.append(z_raw)
@@ -682,6 +706,7 @@ class GraphBuilder:
         rec.g_online.append(g)
         rec.w_online.append(w)
         rec.r_online.append(r_los)
+        rec.evidence.append(evidence)
 
     def _jump_evidence(
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray

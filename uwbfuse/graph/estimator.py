@@ -61,6 +61,7 @@ from uwbfuse.graph.uwb import (
     residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
+from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.sparse_start import SparseStartInitialiser
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
@@ -102,6 +103,7 @@ class GraphEstimator:
         self.imu = ImuBuffer()
         self.wheel = WheelTrack()
         self.builder: GraphBuilder | None = None
+        self._range_priors: RangePriors | None = None  # the NLOS classifier's, if any
         self.smoother: OnlineSmoother | None = None
         self._chunk = BATCH_CHUNK if method is Method.BATCH else config.graph.update_every
         self._pending: list[Increment] = []
@@ -149,6 +151,13 @@ class GraphEstimator:
         self.wheel.add(t_ns, v, omega)
         if self.builder is None:
             self.init.add_wheel(t_ns, v, omega)
+
+    def use_range_priors(self, priors: RangePriors) -> None:
+        """Take the learned NLOS classifier's P(NLOS) per range as each range's prior
+        odds in the LOS/NLOS mixture (online and batch)."""
+        self._range_priors = priors
+        if self.builder is not None:
+            self.builder.priors = priors
 
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
         """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
@@ -220,6 +229,7 @@ class GraphEstimator:
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is Method.BATCH,
         )
+        self.builder.priors = self._range_priors
         for t, a, r in self.init.pre_ranges:
             self.builder.add_ranges(t, a, r)
         self.init.pre_ranges.clear()
@@ -356,6 +366,7 @@ class GraphEstimator:
                 exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
                 r_nlos = r_los - exc[anchor]
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
+        ll_n = ll_n + np.concatenate([rb.evidence for rb in batches])  # the classifier's
         g = np.empty(len(z))
         sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)

@@ -702,6 +702,8 @@ def _solve_em(
                 g_cur = g if g_prev is not None or not nlos_first else np.ones(len(g))
                 ll_l, ll_n = _search_windows(values, rec, anchors, n_kf, a_r, r_los, g_cur,
                                              mix, e_var, ll_l, ll_n)
+            if it == 0:  # the learned classifier's log-odds start EM (patent S6: then the
+                ll_n = ll_n + rec["evidence"]  # fused track re-estimates the NLOS ranges)
             a_sorted = a_r[order]
             gs = np.empty(len(order))
             ll_ls, ll_ns = ll_l[order], ll_n[order]

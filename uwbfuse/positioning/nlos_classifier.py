@@ -74,6 +74,9 @@ KNOWN_FEATURES = RESIDUAL_FEATURES + POWER_FEATURES
 LABEL_THRESHOLD_M = 0.15
 MAX_REFERENCE_AGE_S = 2.0  # s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
 MAX_JUMP_GAP_S = 2.0  # s: a range jump over a longer gap is motion, not a change of path
+# nats: a forest's leaf frequencies of 0 or 1 are not certainty (its leaves hold a few
+# ranges each); 5 nats is odds of 150:1
+MAX_EVIDENCE_NATS = 5.0
 MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s)
 
 
@@ -313,11 +316,14 @@ class RangePriors:
 
     The driving loop hands each estimator consecutive slices of the range stream; `take`
     matches a batch by its stamps and anchors (a cursor, with a search where batches skip).
-    A range it cannot match gets `default`.
+    A range it cannot match gets `default`. `base_rate`: the NLOS share of the training
+    ranges (the classifier's own prior), so that a consumer with a prior of its own can
+    take the classifier's evidence alone (`log_odds`).
     """
 
     def __init__(self, t_ns: NDArray[np.int64], anchor: NDArray[np.int32], p: F64,
-                 default: float = math.nan) -> None:
+                 default: float = math.nan, base_rate: float = 0.5) -> None:
+        self.base_rate = min(max(float(base_rate), 0.01), 0.99)
         self.t_ns = np.asarray(t_ns, dtype=np.int64)
         self.anchor = np.asarray(anchor, dtype=np.int32)
         self.p = np.asarray(p, dtype=np.float64)
@@ -342,6 +348,15 @@ class RangePriors:
         if n:
             self._cursor = int(hi[-1])
         return out
+
+
+    def log_odds(self, q: F64) -> F64:
+        """The classifier's evidence for NLOS, log(q / (1 - q)) - log(b / (1 - b)) with b the
+        training base rate (0 where q is unknown), clipped to +-MAX_EVIDENCE_NATS."""
+        qc = np.clip(np.asarray(q, dtype=np.float64), 1e-3, 1.0 - 1e-3)
+        b = self.base_rate
+        lo = np.log(qc / (1.0 - qc)) - math.log(b / (1.0 - b))
+        return np.where(np.isfinite(q), np.clip(lo, -MAX_EVIDENCE_NATS, MAX_EVIDENCE_NATS), 0.0)
 
 
 def set_range_priors(estimator: object, priors: RangePriors) -> bool:
