@@ -11,14 +11,18 @@ Features, per range, all causal (from the range itself and what came before it):
 - `distance`: the measured range (m); `elevation`: the anchor's elevation angle seen from
   the reference position (rad);
 - `fix_rms`: the RMS range residual of the reference fix (m: how consistent the epoch was);
-- with signal quality in the log: `rssi_dbm` (received total power) and `rx_minus_fp_db`
-  (total minus first-path power, dB; Decawave APS006: about 6 dB and more suggests NLOS).
+- `residual_median`: the median residual of the anchor's last `HISTORY_RANGES` ranges
+  (this one included): NLOS persists while the obstacle is in the way;
+- with signal quality in the log: `rssi_dbm` (received total power), `rx_minus_fp_db`
+  (total minus first-path power, dB; Decawave APS006: about 6 dB and more suggests NLOS)
+  and its running median `rx_minus_fp_median` as `residual_median`.
 
 The causal reference (the same at training and at run time, whatever the estimator): the
-robust (Huber) multilateration fix of the latest epoch that ended before the range, with
-the geometry the `wls` method uses (2-D at the tag height for wheeled logs); epochs as
-`wls` groups them. It is an estimator-independent stand-in for "the current prediction",
-so a model trained once serves `wls`, `ekf`, `ukf` and the graph alike. Where no fix is
+robust (Huber) multilateration fixes of the epochs that ended before the range, with the
+geometry the `wls` method uses (2-D at the tag height for wheeled logs; epochs as `wls`
+groups them), a constant-velocity line fitted to the last `TRACK_FIXES` of them and
+evaluated at the range's stamp. It is an estimator-independent stand-in for "the current
+prediction", so a model trained once serves `wls`, `ekf`, `ukf` and the graph alike. Where no fix is
 younger than `MAX_REFERENCE_AGE_S` the position features are NaN (the forest has learnt
 where missing values go).
 
@@ -36,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,18 +70,23 @@ FORMAT_VERSION = 1
 TRUSTED_TYPES = ("sklearn.tree._tree.Tree",)
 
 RESIDUAL_FEATURES = ("residual", "residual_jump", "range_jump", "range_rate", "distance",
-                     "elevation", "fix_rms")
-POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db")
+                     "elevation", "fix_rms", "residual_median")
+POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db", "rx_minus_fp_median")
 KNOWN_FEATURES = RESIDUAL_FEATURES + POWER_FEATURES
 
 # m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
 # noise but an excess path (NLOS) or a gross ranging fault, and either should be trusted less
 LABEL_THRESHOLD_M = 0.15
 MAX_REFERENCE_AGE_S = 2.0  # s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
+TRACK_FIXES = 8  # fixes in the reference's line fit: about 1 s of 0.1 s epochs
 MAX_JUMP_GAP_S = 2.0  # s: a range jump over a longer gap is motion, not a change of path
 # nats: a forest's leaf frequencies of 0 or 1 are not certainty (its leaves hold a few
 # ranges each); 5 nats is odds of 150:1
 MAX_EVIDENCE_NATS = 5.0
+# ranges of one anchor (this one and those before it) in the running medians: NLOS lasts
+# while an obstacle is in the way, seconds at walking or AGV speed (5 ranges: 0.5 s at 40 Hz
+# over four anchors)
+HISTORY_RANGES = 5
 MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s)
 
 
@@ -107,6 +117,35 @@ def _reference_fixes(
     return ep, fx.position, fx.ok & enough, fx.residual_rms
 
 
+def _track_prediction(
+    t: NDArray[np.int64], ep: NDArray[np.int64], pos: F64, good: NDArray[np.int64],
+    j: NDArray[np.int64], has: NDArray[np.bool_],
+) -> F64:
+    """The tag position (N,3) at each range's stamp t from a constant-velocity line fitted
+    to the last `TRACK_FIXES` usable fixes before it (within MAX_REFERENCE_AGE_S; their
+    mean where they span no time); the latest fix where there is none before."""
+    n = len(t)
+    if not len(good):
+        return np.zeros((n, 3))
+    idx = np.maximum(j, 0)[:, None] - np.arange(TRACK_FIXES)[None, ::-1]
+    valid = (idx >= 0) & has[:, None]
+    gi = good[np.maximum(idx, 0)]
+    tau = (ep[gi] - t[:, None]) / NS_PER_S  # s, <= 0
+    valid &= tau >= -MAX_REFERENCE_AGE_S
+    w = valid.astype(np.float64)
+    p = pos[gi]  # (N, K, 3)
+    s0, s1, s2 = w.sum(1), (w * tau).sum(1), (w * tau * tau).sum(1)
+    sy = np.einsum("nk,nkc->nc", w, p)
+    sty = np.einsum("nk,nkc->nc", w * tau, p)
+    det = s0 * s2 - s1 * s1
+    line = det > 1e-6 * np.maximum(s0, 1.0) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        b = (s2[:, None] * sy - s1[:, None] * sty) / np.where(line, det, 1.0)[:, None]
+        mean = sy / np.maximum(s0, 1.0)[:, None]
+    out = np.where(line[:, None], b, mean)
+    return np.where((s0 > 0)[:, None], out, pos[good[np.maximum(j, 0)]])
+
+
 def _previous_same_anchor(t: NDArray[np.int64], a: NDArray[np.int32]) -> NDArray[np.int64]:
     """Index of each range's previous range from the same anchor (-1 for the first)."""
     order = np.lexsort((t, a))
@@ -114,6 +153,24 @@ def _previous_same_anchor(t: NDArray[np.int64], a: NDArray[np.int32]) -> NDArray
     same = a[order][1:] == a[order][:-1]
     prev[order[1:][same]] = order[:-1][same]
     return prev
+
+
+def _running_median(v: F64, t: NDArray[np.int64], a: NDArray[np.int32], k: int) -> F64:
+    """Per anchor, the nan-median of each value and the k - 1 values before it (causal)."""
+    order = np.lexsort((t, a))
+    vs, as_ = v[order], a[order]
+    pad = np.full(k - 1, np.nan)
+    out = np.empty(len(v))
+    starts = np.flatnonzero(np.r_[True, as_[1:] != as_[:-1]])
+    ends = np.r_[starts[1:], len(v)]
+    for s0, e0 in zip(starts.tolist(), ends.tolist(), strict=True):  # one pass per anchor
+        win = np.lib.stride_tricks.sliding_window_view(np.r_[pad, vs[s0:e0]], k)
+        with warnings.catch_warnings():  # an all-NaN window gives NaN, as wanted
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[s0:e0] = np.nanmedian(win, axis=1)
+    res = np.empty(len(v))
+    res[order] = out
+    return res
 
 
 def range_features(
@@ -138,8 +195,9 @@ def range_features(
     has = j >= 0
     k = good[np.maximum(j, 0)] if len(good) else np.zeros(n, dtype=np.int64)
     has &= (t - ep[k]) <= round(MAX_REFERENCE_AGE_S * NS_PER_S)
+    ref = _track_prediction(t, ep, pos, good, j, has)
     ap = anchors.positions[a]
-    d = ap - pos[k]
+    d = ap - ref
     pred = np.linalg.norm(d, axis=1)
     res = np.where(has, z - pred, np.nan)
     elev = np.where(has, np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])), np.nan)
@@ -152,11 +210,14 @@ def range_features(
     res_jump = np.where(recent, res - res[np.maximum(prev, 0)], np.nan)
     cols = {"residual": res, "residual_jump": res_jump, "range_jump": jump,
             "range_rate": rate, "distance": z, "elevation": elev,
-            "fix_rms": np.where(has, rms[k], np.nan)}
+            "fix_rms": np.where(has, rms[k], np.nan),
+            "residual_median": _running_median(res, t, a, HISTORY_RANGES)}
     if with_power:
         assert ranges.rssi_dbm is not None and ranges.first_path_dbm is not None
+        gap = ranges.rssi_dbm - ranges.first_path_dbm
         cols["rssi_dbm"] = ranges.rssi_dbm
-        cols["rx_minus_fp_db"] = ranges.rssi_dbm - ranges.first_path_dbm
+        cols["rx_minus_fp_db"] = gap
+        cols["rx_minus_fp_median"] = _running_median(gap, t, a, HISTORY_RANGES)
     for i, name in enumerate(names):
         x[:, i] = cols[name]
     return x, names
