@@ -80,6 +80,14 @@ def test_fast_encoders_match_mcap_ros2_bytes() -> None:
         header=_header(int(r.t_ns[2]), aid), radiation_type=0, field_of_view=2 * np.pi,
         min_range=0.0, max_range=200.0, range=float(r.range[2])))
     assert cdr_fast.encode_range(r.t_ns, log.anchors.ids, r.anchor, r.range)[2] == ref
+    rx, fp = -80.0 - r.range, -85.5 - r.range
+    for i in (0, 2):  # anchor ids of different lengths: the floats' alignment moves
+        aid = log.anchors.ids[int(r.anchor[i])]
+        ref = _encoder(msgdefs.UWB_RANGE)(NS(
+            header=_header(int(r.t_ns[i]), "uwb_tag"), anchor_id=aid, range=float(r.range[i]),
+            rssi=float(rx[i]), first_path_power=float(fp[i])))
+        assert cdr_fast.encode_uwb_range(r.t_ns, log.anchors.ids, r.anchor, r.range, rx,
+                                         fp)[i] == ref
 
     g = log.ground_truth
     ref = _encoder(msgdefs.POSE_STAMPED)(NS(

@@ -305,3 +305,33 @@ def test_range_priors_lookup() -> None:
     got = rp.take(np.array([25]), np.array([0]))
     assert np.isnan(got[0])
     np.testing.assert_allclose(rp.log_odds(np.array([0.5, np.nan])), [0.0, 0.0])
+
+
+def test_uwb_range_fast_decode_matches_mcap_ros2() -> None:
+    """test that the vectorised UwbRange decoder reads what mcap_ros2's decoder reads, for
+    anchor ids of several lengths, and hands back messages it cannot read (a truncated
+    one)."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+
+    from uwbfuse.io import cdr_fast
+
+    ids = ("A", "B12", "7475", "anchor-long-name")
+    n = 12
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 25_000_000
+    anchor = np.arange(n) % len(ids)
+    rng, rx, fp = 1.0 + 0.5 * np.arange(n), -80.0 - np.arange(n), -90.0 - np.arange(n)
+    datas = cdr_fast.encode_uwb_range(t, ids, anchor, rng, rx, fp)
+    datas[5] = datas[5][:-3]  # truncated
+    ok, cols = cdr_fast.decode_fixed(msgdefs.UWB_RANGE, datas)
+    assert ok.tolist() == [i != 5 for i in range(n)]
+    schema = Schema(id=1, name=msgdefs.UWB_RANGE, encoding="ros2msg",
+                    data=msgdefs.schema_text(msgdefs.UWB_RANGE).encode())
+    dec = DecoderFactory().decoder_for("cdr", schema)
+    for i in np.flatnonzero(ok).tolist():
+        m = dec(datas[i])
+        assert cols["anchor_id"][i] == m.anchor_id == ids[anchor[i]]
+        assert cols["range"][i] == np.float32(m.range)
+        assert cols["rssi"][i] == np.float32(m.rssi)
+        assert cols["first_path"][i] == np.float32(m.first_path_power)
+        assert cols["t_ns"][i] == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec

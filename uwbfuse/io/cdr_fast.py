@@ -14,7 +14,8 @@ are reported back so the caller can use the generic decoder. Encoding builds one
 uint8 matrix per group of messages sharing their frame ids.
 
 Supported types: sensor_msgs/msg/Imu, nav_msgs/msg/Odometry, sensor_msgs/msg/Range,
-geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped (ROS 2 Humble layouts,
+geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped, the simulator's
+uwbfuse_msgs/msg/UwbRange (anchor_id, range, rssi, first_path_power) (ROS 2 Humble layouts,
 or any schema whose flattened layout starts with them, e.g. Range with `variance`).
 """
 
@@ -77,7 +78,7 @@ def _layout(type_name: str, l1: int, l2: int) -> tuple[int, int]:
 
 FAST_TYPES = frozenset(
     {msgdefs.IMU, msgdefs.ODOMETRY, msgdefs.RANGE, msgdefs.POSE_STAMPED,
-     msgdefs.TRANSFORM_STAMPED}
+     msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE}
 )
 _HAS_CHILD = frozenset({msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE})
 
@@ -311,6 +312,9 @@ def _empty_columns(type_name: str, n: int) -> dict[str, np.ndarray]:
     elif type_name == msgdefs.RANGE:
         cols["range"] = np.zeros(n)
         cols["frame_id"] = np.empty(n, dtype=object)
+    elif type_name == msgdefs.UWB_RANGE:
+        cols.update(range=np.zeros(n), rssi=np.zeros(n), first_path=np.zeros(n),
+                    anchor_id=np.empty(n, dtype=object))
     elif type_name in (msgdefs.POSE_STAMPED, msgdefs.TRANSFORM_STAMPED):
         cols.update(position=np.zeros((n, 3)), quat=np.zeros((n, 4)))
     else:
@@ -346,13 +350,16 @@ def decode_at(
         good &= 4 + c + 4 <= ln
         l2 = np.zeros(len(o), dtype=np.int64)
         l2[good] = _take(arr, o[good] + 4 + c[good], 4).view("<u4")[:, 0]
-        start = _va8(c + 4 + l2)
+        start = _va4(c + 4 + l2) if type_name == msgdefs.UWB_RANGE else _va8(c + 4 + l2)
     elif type_name == msgdefs.RANGE:
         start = _va4(p + 1)
     else:
         start = _va8(p)
-    size = {msgdefs.IMU: 37 * 8, msgdefs.ODOMETRY: 85 * 8, msgdefs.RANGE: 16}.get(type_name, 56)
+    size = {msgdefs.IMU: 37 * 8, msgdefs.ODOMETRY: 85 * 8, msgdefs.RANGE: 16,
+            msgdefs.UWB_RANGE: 12}.get(type_name, 56)
     good &= (4 + start + size <= ln) & (l1 < ln)
+    if type_name in _HAS_CHILD:
+        l2, c = l2[good], c[good]
     sel, o, head, start, l1 = sel[good], o[good], head[good], start[good], l1[good]
     ok[:] = False
     ok[sel] = True
@@ -376,6 +383,13 @@ def decode_at(
             # an over-long id is cut one past the limit (the reader drops it as too long)
             width = min(max(v1 - 1, 0), 4 * MAX_ANCHOR_ID_CHARS + 1)
             cols["frame_id"][sel[k]] = _strings(_take(arr, o[k] + 16, width))
+    elif type_name == msgdefs.UWB_RANGE:
+        f = _take(arr, b, 12).view("<f4").astype(np.float64)
+        cols["range"][sel], cols["rssi"][sel], cols["first_path"][sel] = f.T
+        for v2 in np.unique(l2).tolist():
+            k = l2 == v2
+            width = min(max(v2 - 1, 0), 4 * MAX_ANCHOR_ID_CHARS + 1)
+            cols["anchor_id"][sel[k]] = _strings(_take(arr, o[k] + 4 + c[k] + 4, width))
     else:
         pose = _f8(arr, b, 7)
         cols["position"][sel] = pose[:, 0:3]

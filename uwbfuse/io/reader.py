@@ -158,10 +158,19 @@ class _Columns:
         return np.concatenate(t), np.concatenate(lt)
 
 
+def _uwb_fast_ok(config: Config) -> bool:
+    """Whether the [uwb] mapping reads `msgdefs.UWB_RANGE` as its vectorised decoder does
+    (anchor_id, range, rssi, first_path_power; no array, no validity flag)."""
+    u = config.uwb
+    return (u.anchor_field == "anchor_id" and u.range_field == "range" and not u.array_field
+            and not u.valid_field and u.rssi_field in ("", "rssi")
+            and u.first_path_power_field in ("", "first_path_power"))
+
+
 class _ChannelSink:
     """Collects one role channel's messages: vectorised decode where possible, else bytes."""
 
-    def __init__(self, channel: RawChannel, roles: list[str]) -> None:
+    def __init__(self, channel: RawChannel, roles: list[str], config: Config) -> None:
         self.channel = channel
         self.roles = roles
         self.type_name = _norm(channel.schema.name) if channel.schema else ""
@@ -171,7 +180,8 @@ class _ChannelSink:
                 channel.schema.name, channel.schema.encoding,
                 channel.schema.data.decode("utf-8", errors="replace"),
             )
-        if UWB in roles and self.fast not in (None, msgdefs.RANGE):
+        if UWB in roles and self.fast not in (None, msgdefs.RANGE) and not (
+                self.fast == msgdefs.UWB_RANGE and _uwb_fast_ok(config)):
             self.fast = None  # other types on the UWB topic go through the [uwb] mapping
         self.fast_parts: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
         self.pending_time: list[np.ndarray] = []
@@ -416,6 +426,10 @@ def _fast_columns(sink: _ChannelSink, role: str, cols: _Columns) -> None:
             cols.add(c["t_ns"], lt, v=c["v"], omega=c["omega"])
         elif role == GT:
             cols.add(c["t_ns"], lt, position=c["position"], quat=c["quat"])
+        elif "anchor_id" in c:  # msgdefs.UWB_RANGE, its fields as _uwb_fast_ok checked
+            cols.add(c["t_ns"], lt, anchor=c["anchor_id"], range=c["range"],
+                     valid=np.ones(len(lt), dtype=bool), rssi=c["rssi"],
+                     first_path=c["first_path"])
         else:
             nan = np.full(len(lt), np.nan)
             cols.add(c["t_ns"], lt, anchor=c["frame_id"], range=c["range"],
@@ -840,7 +854,7 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
         roles = by_topic.get(channel.topic)
         if roles is None:
             return None
-        sink = _ChannelSink(channel, roles)
+        sink = _ChannelSink(channel, roles, config)
         sinks.append(sink)
         return sink
 

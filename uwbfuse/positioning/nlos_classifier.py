@@ -83,6 +83,10 @@ MAX_JUMP_GAP_S = 2.0  # s: a range jump over a longer gap is motion, not a chang
 # nats: a forest's leaf frequencies of 0 or 1 are not certainty (its leaves hold a few
 # ranges each); 5 nats is odds of 150:1
 MAX_EVIDENCE_NATS = 5.0
+# the forest's residual features overlap the evidence a consumer's own residual (the
+# graph's, a filter's innovation) gives: its log-odds count half (a tempered likelihood),
+# so that the same residual is not counted twice in full
+EVIDENCE_WEIGHT = 0.5
 # ranges of one anchor (this one and those before it) in the running medians: NLOS lasts
 # while an obstacle is in the way, seconds at walking or AGV speed (5 ranges: 0.5 s at 40 Hz
 # over four anchors)
@@ -412,11 +416,12 @@ class RangePriors:
 
 
     def log_odds(self, q: F64) -> F64:
-        """The classifier's evidence for NLOS, log(q / (1 - q)) - log(b / (1 - b)) with b the
-        training base rate (0 where q is unknown), clipped to +-MAX_EVIDENCE_NATS."""
+        """The classifier's evidence for NLOS, EVIDENCE_WEIGHT x (log(q / (1 - q)) -
+        log(b / (1 - b))) with b the training base rate (0 where q is unknown), clipped to
+        +-MAX_EVIDENCE_NATS."""
         qc = np.clip(np.asarray(q, dtype=np.float64), 1e-3, 1.0 - 1e-3)
         b = self.base_rate
-        lo = np.log(qc / (1.0 - qc)) - math.log(b / (1.0 - b))
+        lo = EVIDENCE_WEIGHT * (np.log(qc / (1.0 - qc)) - math.log(b / (1.0 - b)))
         return np.where(np.isfinite(q), np.clip(lo, -MAX_EVIDENCE_NATS, MAX_EVIDENCE_NATS), 0.0)
 
 
