@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from uwbfuse.errors import UwbfuseError
+from uwbfuse.positioning.nlos_classifier import LABEL_THRESHOLD_M
 
 if TYPE_CHECKING:
     from uwbfuse.progress import ProgressBar
@@ -382,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="ground truth per log (TUM, same order), else the log's topic")
     tn.add_argument("-o", "--output", required=True, metavar="MODEL", help="model file")
     tn.add_argument("--trees", type=int, default=100, help="trees in the forest")
-    tn.add_argument("--threshold", type=float, default=0.15,
+    tn.add_argument("--threshold", type=float, default=LABEL_THRESHOLD_M,
                     help="label threshold on |measured - true range|, m (3x DW1000 LOS std)")
     tn.add_argument("--seed", type=int, default=0, help="forest random seed")
     tn.set_defaults(func=_cmd_train_nlos)

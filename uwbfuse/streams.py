@@ -111,14 +111,6 @@ class RangeStream:
                            self.range[start:stop], part(self.rssi_dbm),
                            part(self.first_path_dbm))
 
-    def take(self, sel: NDArray) -> RangeStream:
-        """Rows `sel` (mask or index) as a new stream."""
-        def part(a: F64 | None) -> F64 | None:
-            return None if a is None else a[sel]
-
-        return RangeStream(self.t_ns[sel], self.anchor[sel], self.range[sel],
-                           part(self.rssi_dbm), part(self.first_path_dbm))
-
 
 UNKNOWN_VARIANCE = 1.0e6
 """Variance (m^2 or rad^2) reported for a pose component a method does not estimate

@@ -362,19 +362,6 @@ def _short(v: object) -> str:
     return s if len(s) <= 80 else s[:77] + "..."
 
 
-def classifier_priors(log: SensorLog, config: Config) -> F64 | None:
-    """P(NLOS) (N,) of each range of `log` from `[nlos] classifier`, or None without one."""
-    if not config.nlos.classifier:
-        return None
-    model = load_classifier(config.nlos.classifier)
-    p = model.predict_log(log, config)
-    if len(p):
-        log_ = logging.getLogger(__name__)
-        log_.debug("%s: classifier P(NLOS) mean %.3f over %d ranges", log.source,
-                   float(np.mean(p)), len(p))
-    return p
-
-
 # -------------------------------------------------------------------- per-range lookup
 class RangePriors:
     """P(NLOS) per range of a whole stream, looked up by the batches an estimator is fed.
