@@ -118,3 +118,24 @@ def test_range_scale_follows_the_innovations() -> None:
         _, _, ok, _ = noise.weigh(a, y, s)
         noise.accept(a, y, s, ok, z)
     assert abs(noise.scale - 1.03) < 0.005
+
+
+def test_scalar_weighing_matches_the_array_form_bit_for_bit() -> None:
+    """test that `weigh_one`/`accept_one` (the EKF's sequential path) give exactly the
+    corrected innovations, variances, gate decisions and, through refits, the same fitted
+    model as `weigh`/`accept` on the same ranges"""
+    rng = np.random.default_rng(4)
+    arr, one = RangeNoise(Config(), 4), RangeNoise(Config(), 4)
+    for _ in range(900):
+        a = int(rng.integers(0, 4))
+        y = float(rng.normal(0.05, 0.2)) + (2.5 if rng.random() < 0.02 else 0.0)
+        s = float(rng.uniform(1e-5, 1e-2))
+        z = 4.0 + y
+        yc, var, ok, nis = arr.weigh(np.array([a]), np.array([y]), np.array([s]))
+        arr.accept(np.array([a]), np.array([y]), np.array([s]), ok, np.array([z]))
+        yc1, var1, ok1, nis1, p1 = one.weigh_one(a, y, s)
+        if ok1:
+            one.accept_one(a, y, s, p1, z)
+        assert (yc1, var1, ok1, nis1) == (yc[0], var[0], bool(ok[0]), nis[0])
+    assert arr.refits >= 3 and one.report() == arr.report()
+    assert np.array_equal(arr.p_last, one.p_last)
