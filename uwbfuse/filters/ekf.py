@@ -14,7 +14,11 @@ widens it to the inputs the graph sees:
   planar rows), each robustly weighted on its own innovation: LOS/NLOS mixture posterior
   as the measurement, chi-square gate (`[filter] gate_probability`, `gating`), the mixture
   fitted to the log's innovations (`adaptive_noise.RangeNoise`); counted per anchor in
-  `report()`.
+  `report()`. Where the tag height is held (wheels: planar, or the wheel-driven variant)
+  the error state carries one range bias per anchor (`base.StreamingFilter.bias_decay`:
+  first-order Gauss-Markov, its noise following the anchor's NLOS probability), so that
+  the slow part of an anchor's NLOS excess is one error shared by its ranges rather than
+  independent per range.
 - Wheel odometry is a base-frame velocity measurement: forward speed v with
   `wheel.sigma_v`, and zero lateral and vertical speed with `wheel.sigma_lateral`
   (non-holonomic). With wheels, the vehicle is on the floor: a soft planar constraint holds
