@@ -149,8 +149,9 @@ class StreamingFilter:
     SHORT_RUN = 3
     SHORT_STREAK = 1
     #: The filter carries one range-bias state per anchor (`rbias`, m, appended to its
-    #: error state): each anchor's ranges share a slowly varying error (antenna delay,
-    #: the slow part of an NLOS excess) that independent per-range noise cannot describe.
+    #: error state; the last entry is the common scale error when `scale_state`): each
+    #: anchor's ranges share a slowly varying error (antenna delay, the slow part of an
+    #: NLOS excess) that independent per-range noise cannot describe.
     RANGE_BIAS = False
 
     def __init__(
@@ -181,7 +182,14 @@ class StreamingFilter:
         # 2-D ATE 0.161 -> 0.164 m with them)
         self.planar = self.has_wheel and config.graph.planar != "off"
         held = self.planar or not self.has_imu
-        self.n_bias = len(anchors) if self.RANGE_BIAS and held else 0
+        # and one common range-scale error state (ranges read (1 + ds) x the distance after
+        # the start solve's scale), a random constant of prior std `[graph]
+        # range_scale_sigma`: the start solve's scale is fitted to seconds of ranges
+        # (1.025-1.033 and 0.973 on room-static logs without scale error) and its start
+        # position with it, so the filter estimates the scale with the position rather than
+        # keep it (a regression on its own predicted distances cannot undo it)
+        self.scale_state = self.RANGE_BIAS and held and len(anchors) > 0
+        self.n_bias = (len(anchors) + int(self.scale_state)) if self.RANGE_BIAS and held else 0
         self.rbias: F64 = np.zeros(self.n_bias)
         self.bias_tau = config.graph.nlos_tau
         self.gating = config.filter.gating
@@ -292,7 +300,8 @@ class StreamingFilter:
             # the LOS spread's prior.
             # (the height is held by the planar constraint, or fixed in the wheel-driven filter)
             self.range_noise.set_start_scale(
-                float(state.range_scale), refine=self.planar or not self.has_imu)
+                float(state.range_scale),
+                refine=(self.planar or not self.has_imu) and not self.scale_state)
             self.range_noise.widen_los_prior(float(state.range_sigma))
             self._start(state)
             self.t_cur = self.t_init
@@ -367,7 +376,9 @@ class StreamingFilter:
             "repeated_ranges": self.repeated,
             "stale_samples": self.stale,
             "range_noise": self.range_noise.report(),
-            "range_bias": {ids[i]: round(float(b), 4) for i, b in enumerate(self.rbias)},
+            "range_bias": {ids[i]: round(float(b), 4)
+                           for i, b in enumerate(self.rbias[: len(ids)])},
+            "range_scale_error": round(float(self.rbias[-1]), 5) if self.scale_state else 0.0,
         }
 
     # -- to implement -------------------------------------------------------------------
@@ -416,13 +427,19 @@ class StreamingFilter:
         a slow excess of the fitted size, so its tens of ranges a second do not count as
         independent evidence."""
         f = np.full(self.n_bias, math.exp(-t / self.bias_tau))
-        return f, (1.0 - f * f) * self.bias_variance()
+        if self.scale_state:
+            f[-1] = 1.0
+        q = (1.0 - f * f) * self.bias_variance()
+        return f, q
 
     def bias_variance(self) -> F64:
         """Stationary variance (M,) m^2 of each anchor's range bias now (`bias_decay`)."""
         if not self.n_bias:
             return np.zeros(0)
-        return self.range_noise.p_last * self.range_noise.model.nlos_std**2
+        var = self.range_noise.p_last * self.range_noise.model.nlos_std**2
+        if self.scale_state:
+            var = np.append(var, self.config.graph.range_scale_sigma**2)
+        return var
 
 
     def imu_grid(

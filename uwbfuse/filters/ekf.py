@@ -254,6 +254,9 @@ class ErrorStateEkf(StreamingFilter):
                 h = pad_rows(h, self.n_x)
                 h[np.arange(nr), N_ERR + ra] = 1.0
                 range_y = range_y - self.rbias[ra]
+                if self.scale_state:
+                    h[:, -1] = r_hat
+                    range_y = range_y - self.rbias[-1] * r_hat
             range_h = h
             self.short = range_y < 0.0
         nw = len(wt)
@@ -430,6 +433,9 @@ class UnicycleEkf(StreamingFilter):
                 h = pad_rows(h, 3 + self.n_bias)
                 h[np.arange(nr), 3 + ra] = 1.0
                 y = y - self.rbias[ra]
+                if self.scale_state:
+                    h[:, -1] = r_hat
+                    y = y - self.rbias[-1] * r_hat
             self.short = y < 0.0
             self.P, dx0, used, self.nis = sequential_ranges(
                 self.range_noise, self.P, np.zeros(3 + self.n_bias), h, y, ra, rr
