@@ -14,7 +14,11 @@ widens it to the inputs the graph sees:
   planar rows), each robustly weighted on its own innovation: LOS/NLOS mixture posterior
   as the measurement, chi-square gate (`[filter] gate_probability`, `gating`), the mixture
   fitted to the log's innovations (`adaptive_noise.RangeNoise`); counted per anchor in
-  `report()`.
+  `report()`. Where the tag height is held (wheels: planar, or the wheel-driven variant)
+  the error state carries one range bias per anchor (`base.StreamingFilter.bias_decay`:
+  first-order Gauss-Markov, its noise following the anchor's NLOS probability), so that
+  the slow part of an anchor's NLOS excess is one error shared by its ranges rather than
+  independent per range.
 - Wheel odometry is a base-frame velocity measurement: forward speed v with
   `wheel.sigma_v`, and zero lateral and vertical speed with `wheel.sigma_lateral`
   (non-holonomic). With wheels, the vehicle is on the floor: a soft planar constraint holds
@@ -82,13 +86,16 @@ from uwbfuse.filters.models import (
     V_,
     ImuNoise,
     Prefix,
+    augment,
     block_noise,
     cap_variances,
     cross,
     imu_rotation,
     joseph_update,
     mechanise,
+    pad_rows,
     pose_covariance,
+    propagate_with_biases,
     quat_xyzw_from_matrix,
     quat_xyzw_from_yaw,
     skew,
@@ -149,6 +156,8 @@ class ErrorStateEkf(StreamingFilter):
     are those of the last update.
     """
 
+    RANGE_BIAS = True
+
     def __init__(
         self,
         config: Config,
@@ -159,6 +168,7 @@ class ErrorStateEkf(StreamingFilter):
         super().__init__(config, anchors, streams, initialiser)
         if not self.has_imu:
             raise EstimatorError("ErrorStateEkf needs IMU data (use UnicycleEkf)")
+        self.n_x = N_ERR + self.n_bias
         self.gravity = config.imu.gravity
         # Process noise: the [imu] figures times [filter] imu_noise_inflation (squared: PSDs).
         self.q_diag = ImuNoise.from_config(config.imu).diag() * config.filter.imu_noise_inflation**2
@@ -167,7 +177,7 @@ class ErrorStateEkf(StreamingFilter):
         # values as priors, then covariance matching on the innovations
         self.wheel_noise = InnovationVariance(
             np.array([w.sigma_v**2, w.sigma_lateral**2, w.sigma_lateral**2]))
-        self._h_planar = np.zeros((3, N_ERR))
+        self._h_planar = np.zeros((3, N_ERR + self.n_bias))
         self._h_planar[0, 2] = 1.0
         g = config.graph
         self.planar_noise = InnovationVariance(np.array(
@@ -190,7 +200,7 @@ class ErrorStateEkf(StreamingFilter):
         r_bi = imu_rotation(self.config.extrinsics.imu_in_base)
         self.bg = r_bi @ np.asarray(state.gyro_bias, dtype=np.float64)
         self.ba = r_bi @ np.asarray(state.accel_bias, dtype=np.float64)
-        self.P = initial_covariance(state, self.config)
+        self.P = augment(initial_covariance(state, self.config), self.bias_variance())
         self.z0 = float(self.p[2])
 
     # -- predict / update over one window ----------------------------------------------
@@ -239,7 +249,15 @@ class ErrorStateEkf(StreamingFilter):
             h = np.einsum("mi,mij->mj", u, rows[:, P_])
             if self.has_tag_lever:
                 h += np.einsum("mi,mij->mj", cross(tag_w, u), rows[:, TH])
-            range_h, range_y = h, rr - r_hat
+            range_y = rr - r_hat
+            if self.n_bias:
+                h = pad_rows(h, self.n_x)
+                h[np.arange(nr), N_ERR + ra] = 1.0
+                range_y = range_y - self.rbias[ra]
+                if self.scale_state:
+                    h[:, -1] = r_hat
+                    range_y = range_y - self.rbias[-1] * r_hat
+            range_h = h
             self.short = range_y < 0.0
         nw = len(wt)
         if nw:
@@ -251,7 +269,8 @@ class ErrorStateEkf(StreamingFilter):
             h = rt_ @ (rows[:, V_] + skew(vm) @ rows[:, TH])
             z = np.zeros((nw, 3))
             z[:, 0] = wv
-            hs.append(h.reshape(3 * nw, N_ERR))
+            h = h.reshape(3 * nw, N_ERR)
+            hs.append(pad_rows(h, self.n_x) if self.n_bias else h)
             ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
             rv.append(np.tile(self.wheel_noise.r, nw))
             noise.append(self.wheel_noise)
@@ -278,14 +297,21 @@ class ErrorStateEkf(StreamingFilter):
                 start += len(y_k)
         if nr:  # then the ranges one by one, robustly weighted
             self.P, dx0, used, self.nis = sequential_ranges(
-                self.range_noise, self.P, np.zeros(N_ERR) if dx0 is None else dx0,
+                self.range_noise, self.P, np.zeros(self.n_x) if dx0 is None else dx0,
                 range_h, range_y, ra, rr, self.range_evidence(rt, ra),
             )
         phi = pre.phi(-1)
-        self.P = phi @ self.P @ phi.T + block_noise(phi, self.q_diag, float(pre.t[-1]))
+        t_win = float(pre.t[-1])
+        q = block_noise(phi, self.q_diag, t_win)
+        if self.n_bias:
+            f, qb = self.bias_decay(t_win)
+            self.P = propagate_with_biases(self.P, N_ERR, phi, q, f, qb)
+            self.rbias = f * (self.rbias if dx0 is None else self.rbias + dx0[N_ERR:])
+        else:
+            self.P = phi @ self.P @ phi.T + q
         self.R, self.v, self.p = rs[-1], vs[-1], ps[-1]
         if dx0 is not None:
-            self._inject(phi @ dx0)
+            self._inject(phi @ dx0[:N_ERR])
         return used
 
     def _inject(self, dx: F64) -> None:
@@ -343,6 +369,8 @@ class UnicycleEkf(StreamingFilter):
     sample. The base height stays at the initialiser's z.
     """
 
+    RANGE_BIAS = True
+
     def __init__(
         self,
         config: Config,
@@ -366,7 +394,8 @@ class UnicycleEkf(StreamingFilter):
         self.x = np.array([state.position[0], state.position[1], yaw], dtype=np.float64)
         self.z0 = float(state.position[2])
         ps = max(state.position_sigma, 0.05) ** 2
-        self.P = np.diag([ps, ps, max(state.yaw_sigma, 1e-3) ** 2])
+        self.P = augment(np.diag([ps, ps, max(state.yaw_sigma, 1e-3) ** 2]),
+                         self.bias_variance())
 
     def _window(
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
@@ -400,17 +429,30 @@ class UnicycleEkf(StreamingFilter):
             h = np.stack([u[:, 0], u[:, 1],
                           -u[:, 0] * (oy + ddy) + u[:, 1] * (ox + ddx)], axis=1)
             y = rr - r_hat
+            if self.n_bias:
+                h = pad_rows(h, 3 + self.n_bias)
+                h[np.arange(nr), 3 + ra] = 1.0
+                y = y - self.rbias[ra]
+                if self.scale_state:
+                    h[:, -1] = r_hat
+                    y = y - self.rbias[-1] * r_hat
             self.short = y < 0.0
             self.P, dx0, used, self.nis = sequential_ranges(
-                self.range_noise, self.P, np.zeros(3), h, y, ra, rr, self.range_evidence(rt, ra)
+                self.range_noise, self.P, np.zeros(3 + self.n_bias), h, y, ra, rr,
+                self.range_evidence(rt, ra),
             )
         phi, q = unicycle_transition(
             np.diff(xb), np.diff(yb), v, dt, mid[0], self.sigma_v, self.sigma_w
         )
-        self.P = phi @ self.P @ phi.T + q
+        if self.n_bias:
+            f, qb = self.bias_decay(float(dt.sum()))
+            self.P = propagate_with_biases(self.P, 3, phi, q, f, qb)
+            self.rbias = f * (self.rbias if dx0 is None else self.rbias + dx0[3:])
+        else:
+            self.P = phi @ self.P @ phi.T + q
         self.x = np.array([xb[-1], yb[-1], yawb[-1]])
         if dx0 is not None:
-            self.x = self.x + phi @ dx0
+            self.x = self.x + phi @ dx0[:3]
         return used
 
     def _inflate(self, scale: float) -> None:

@@ -452,3 +452,33 @@ def pose_covariance(p: F64, index: tuple[int | None, ...]) -> F64:
         if i is None:
             out[k, k] = UNKNOWN_VARIANCE
     return out
+
+
+def augment(p: F64, var: F64) -> F64:
+    """Covariance p (n,n) extended by len(var) uncorrelated states of variances var."""
+    n, m = len(p), len(var)
+    out = np.zeros((n + m, n + m))
+    out[:n, :n] = p
+    out[n:, n:] = np.diag(var)
+    return out
+
+
+def pad_rows(h: F64, width: int) -> F64:
+    """Jacobian rows h (k,n) extended with zero columns to (k, width)."""
+    out = np.zeros((len(h), width))
+    out[:, : h.shape[1]] = h
+    return out
+
+
+def propagate_with_biases(p: F64, n: int, phi: F64, q: F64, f: F64, qb: F64) -> F64:
+    """Propagate a covariance whose first n states move with transition phi (n,n) and
+    noise q (n,n) and whose remaining states are first-order Gauss-Markov (each multiplied
+    by f (m,), plus independent noise of variances qb (m,))."""
+    out = np.empty_like(p)
+    out[:n, :n] = phi @ p[:n, :n] @ phi.T + q
+    cross_ = (phi @ p[:n, n:]) * f
+    out[:n, n:] = cross_
+    out[n:, :n] = cross_.T
+    out[n:, n:] = p[n:, n:] * np.outer(f, f)
+    out[n:, n:] += np.diag(qb)
+    return out

@@ -147,6 +147,8 @@ class ErrorStateUkf(ErrorStateEkf):
     linearisation by sigma points.
     """
 
+    RANGE_BIAS = False  # not (yet) in the sigma-point update
+
     def __init__(
         self,
         config: Config,
@@ -242,6 +244,8 @@ class ErrorStateUkf(ErrorStateEkf):
 
 class UnicycleUkf(UnicycleEkf):
     """UKF on the planar unicycle (x, y, yaw) driven by wheel odometry: the paper's eq. 3."""
+
+    RANGE_BIAS = False  # not (yet) in the sigma-point update
 
     def __init__(
         self,
