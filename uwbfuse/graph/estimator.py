@@ -586,6 +586,22 @@ class GraphEstimator:
 
     def _run_batch(self) -> None:
         b = self.builder
+        assert b is not None
+        graph, initial, rec = self.batch_inputs()
+        self._batch = offline.solve(self.cfg, graph, initial, rec,
+                                    self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
+                                    has_wheel=b.has_wheel, with_scale=b.with_scale,
+                                    wheel=b.wheel_records,
+                                    online_verdict=b.prequential_verdict(),
+                                    planar=b.planar)
+
+    def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
+                                    dict[str, np.ndarray]]:
+        """batch only, after the online pass: what `offline.solve` starts from: the
+        recorded non-range factors, the initial values (the online pass's keyframes as
+        they left the window, anchors, range biases) and the range records
+        (`RangeRecords.arrays`). `graph.reference` solves the same problem plainly."""
+        b = self.builder
         assert b is not None and b.full_graph is not None and b.full_values is not None
         n = b.k + 1
         initial = gtsam.Values()
@@ -601,13 +617,7 @@ class GraphEstimator:
                 initial.insert(D(a), float(b.range_bias[a]))
         if b.with_bias:
             initial.insert(C, float(np.mean(b.range_bias)) if len(b.range_bias) else 0.0)
-        rec = b.records.arrays()
-        self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
-                                    self.anchors.positions, n, b.mixture, b.t0, b.scale,
-                                    has_wheel=b.has_wheel, with_scale=b.with_scale,
-                                    wheel=b.wheel_records,
-                                    online_verdict=b.prequential_verdict(),
-                                    planar=b.planar)
+        return b.full_graph, initial, b.records.arrays()
 
     def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude).
