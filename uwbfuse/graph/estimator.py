@@ -76,6 +76,7 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 # sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
+_PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -326,9 +327,12 @@ class GraphEstimator:
         h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
         d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
         e = d + mix.mu_nlos
-        pairs, inv = np.unique(np.stack([anchor, seg], axis=1), axis=0, return_inverse=True)
-        e_pair = np.full(len(pairs), np.nan)
-        for i, (a, sg) in enumerate(pairs.tolist()):
+        # the (anchor, segment) pairs, sorted by anchor then segment (segments >= 0: the
+        # builder drops ranges before its first keyframe), as one int64 code each
+        code, inv = np.unique(anchor.astype(np.int64) * _PAIR + seg, return_inverse=True)
+        e_pair = np.full(len(code), np.nan)
+        for i, (a, sg) in enumerate(zip((code // _PAIR).tolist(), (code % _PAIR).tolist(),
+                                        strict=True)):
             if (a, sg) in b.e_created:
                 try:
                     e_pair[i] = sm.double(nlos_key(a, sg))
@@ -338,8 +342,8 @@ class GraphEstimator:
         e = np.where(np.isnan(e_r), e, e_r)
         r_los = z - h - d
         r_nlos = z - h - e
+        g_cur = np.concatenate([rb.g for rb in batches])
         if SEARCH:
-            g_cur = np.concatenate([rb.g for rb in batches])
             u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
             hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
             self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
@@ -364,16 +368,19 @@ class GraphEstimator:
                                 float(prior[sel[0]]))
         off = 0
         stat_age = now - round(SMOOTHED_STAT_AGE_S * NS_PER_S)
-        for rb in batches:
-            n = len(rb.z)
+        # which batches have a range to replace, in one pass (most have none)
+        moved = np.abs(g - g_cur) > REVIEW_CHANGE
+        sizes = [len(rb.z) for rb in batches]
+        any_moved = np.add.reduceat(moved, np.cumsum([0, *sizes[:-1]])) > 0
+        for rb, n, has in zip(batches, sizes, any_moved.tolist(), strict=True):
             gb, eb = g[off:off + n], e[off:off + n]
             if not rb.counted and b.time_of(rb.ka) <= stat_age:
                 rb.counted = True
                 b.add_smoothed_residuals(r_los[off:off + n], gb)
             off += n
-            changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
-            if len(changed) == 0:
+            if not has:
                 continue
+            changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if self._review_inc is None:
                 self._review_inc = Increment()
             inc = self._review_inc
