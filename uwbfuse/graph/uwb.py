@@ -380,12 +380,16 @@ def los_subset_search(
     if m == 0 or m > max_anchors or len(r) < 3 * m:
         return None
     n = np.bincount(inv, minlength=m).astype(float)
-    suu = np.zeros((m, 2, 2))
-    np.add.at(suu, inv, u[:, :, None] * u[:, None, :])
-    su = np.zeros((m, 2))
-    np.add.at(su, inv, u)
-    sur = np.zeros((m, 2))
-    np.add.at(sur, inv, u * r[:, None])
+
+    def per_anchor(x: np.ndarray) -> np.ndarray:  # sums of the rows of x per anchor
+        flat = x.reshape(len(x), -1)
+        out = np.stack([np.bincount(inv, weights=flat[:, j], minlength=m)
+                        for j in range(flat.shape[1])], axis=1)
+        return out.reshape((m, *x.shape[1:]))
+
+    suu = per_anchor(u[:, :, None] * u[:, None, :])
+    su = per_anchor(u)
+    sur = per_anchor(u * r[:, None])
     sr = np.bincount(inv, weights=r, minlength=m)
     srr = np.bincount(inv, weights=r * r, minlength=m)
     p = min(max(model.p_nlos, 0.02), 0.98)
