@@ -57,6 +57,7 @@ from uwbfuse.streams import NS_PER_S, AnchorMap
 log = logging.getLogger(__name__)
 
 SKIP_LATE = "late sample (stamped at or before an epoch already processed)"
+FORGET_EVERY_S = 10.0  # s of epochs between the estimator's `forget_before` calls
 SENSORS = ("imu", "wheel", "uwb")
 
 
@@ -171,8 +172,11 @@ class Localizer:
     dropped and counted (`skipped`, reason `SKIP_LATE`).
 
     Memory: samples wait only until their epoch is processed; poses are kept for
-    `history_s` seconds for `pose(t)`. `covariance`: compute the poses' covariances (the
-    graph's marginals cost time; `[graph] marginal_covariances` true/false overrides).
+    `history_s` seconds for `pose(t)`; every FORGET_EVERY_S the estimator forgets what
+    only offline outputs need from before twice its lag (`forget_before`), so memory
+    stays flat, and `report()` counts the ranges of that recent past only.
+    `covariance`: compute the poses' covariances (the graph's marginals cost time;
+    `[graph] marginal_covariances` true/false overrides).
     """
 
     def __init__(
@@ -232,6 +236,7 @@ class Localizer:
         self._next_k = 0  # index of the next epoch to process
         self._done_t: int | None = None  # the last processed epoch
         self._closed = False
+        self._forget_at = -(1 << 62)
         self._hist_t: deque[int] = deque()
         self._hist: deque[Pose] = deque()
         self._latest: Pose | None = None
@@ -376,6 +381,13 @@ class Localizer:
             self._record(int(t_k))
         for role, cols in merged.items():
             self._pending[role].keep(tuple(c[starts[role]:] for c in cols))
+        if self._done_t is not None and self._done_t >= self._forget_at:
+            # flat memory: the estimator drops what only offline outputs and the report's
+            # totals need, from before twice its lag
+            self._forget_at = self._done_t + round(FORGET_EVERY_S * NS_PER_S)
+            forget = getattr(getattr(self._est, "primary", self._est), "forget_before", None)
+            if forget is not None:
+                forget(self._done_t - round(2 * self.config.graph.lag * NS_PER_S))
 
     def _record(self, t_k: int) -> None:
         est = self._est.estimate()

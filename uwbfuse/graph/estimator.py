@@ -76,6 +76,7 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 # sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
+LIVE_LATENCY_KEPT = 10_000  # update latencies `forget_before` keeps (16 min at 10 Hz)
 _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
 
 
@@ -504,6 +505,27 @@ class GraphEstimator:
             self.smoother.update(inc)
         except RuntimeError as exc:  # pragma: no cover - priors on every key: cannot fail
             raise EstimatorError(f"graph re-anchoring failed: {exc}") from None
+
+    def forget_before(self, t_ns: int) -> None:
+        """isam2 only (live use, `uwbfuse.Localizer`): drop what only the offline outputs
+        (isam2-smoothed, batch) and the report's totals keep of the time before `t_ns`,
+        which must lie before the lag window: keyframe estimates, range records, wheel
+        samples, step epochs; latency samples are kept for the last LIVE_LATENCY_KEPT
+        updates. Memory then stays flat however long the run; `report()` counts the
+        ranges since `t_ns` only. The causal estimates are unchanged."""
+        b = self.builder
+        if self.method is not Method.ISAM2 or b is None:
+            return
+        t_ns = min(int(t_ns), b.time_of(b.k) - round(self.cfg.graph.lag * NS_PER_S))
+        k_old = min((t_ns - b.t0) // b.period_ns, self._saved_upto)
+        for kf in (self._kf_pose, self._kf_vel, self._kf_bias, self._kf_cov, self._kf_pred):
+            for k in [k for k in kf if k < k_old]:
+                del kf[k]
+        b.records.forget(int(k_old))
+        self.wheel.drop_before(t_ns)
+        self._all_steps = [s for s in self._all_steps if s >= t_ns]
+        for lat in (self._update_latency, self._cov_latency):
+            del lat[:-LIVE_LATENCY_KEPT]
 
     # ------------------------------------------------------------------ output
     @property

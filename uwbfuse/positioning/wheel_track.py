@@ -125,6 +125,20 @@ class WheelTrack:
         self._t[sl], self._v[sl], self._w[sl], self._pose[sl] = t_ns, v, omega, poses
         self._n += m
 
+    def drop_before(self, t_ns: int) -> None:
+        """Forget the samples no longer needed for queries at or after `t_ns` (the one
+        before it stays); the track's poses are absolute, so `at`, `between` and
+        `covariance` from `t_ns` on are unchanged. Compacts only when at least half the
+        samples (and 1000) can go, so the copying stays linear in the samples added."""
+        i = int(np.searchsorted(self.t, t_ns, side="left")) - 1
+        if i < max(1000, self._n // 2):
+            return
+        m = self._n - i
+        for name in ("_t", "_v", "_w", "_pose"):
+            a = getattr(self, name)
+            a[:m] = a[i:self._n].copy()
+        self._n = m
+
     def at(self, t_ns: np.ndarray | int) -> np.ndarray:
         """Track pose(s) (x, y, theta) at `t_ns` (scalar or array of ns)."""
         tq = np.atleast_1d(np.asarray(t_ns, np.int64))
