@@ -137,6 +137,7 @@ class WithFallback:
         self._silent_since: int | None = None
         self._last_provisional: PoseEstimate | None = None
         self.held_epochs = 0
+        self._provisional = True
 
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         self.primary.add_imu(t_ns, gyro, accel)
@@ -153,9 +154,16 @@ class WithFallback:
         if self.fallback is not None:
             self.fallback.add_ranges(t_ns, anchor, rng)
 
+    @property
+    def provisional(self) -> bool:
+        """`estimate()` is not the primary's own (started) estimate: the fallback's fix,
+        a held provisional pose or the primary's provisional one."""
+        return self._provisional
+
     def step(self, t_ns: int) -> None:
         self.primary.step(t_ns)
         self._current = self.primary.estimate()
+        self._provisional = True
         if self._current is not None:
             self._silent_since = None
             if getattr(self.primary, "provisional", False):
@@ -167,6 +175,7 @@ class WithFallback:
                         gap = float(np.hypot(*(fb.position[:2] - self._current.position[:2])))
                         self._discredited = gap > self.DISAGREE_M
                 return
+            self._provisional = False
             self._primary_streak += 1
             if self._primary_streak >= self.DROP_AFTER_EPOCHS:
                 self.fallback = None  # the primary is up for good: free the buffers

@@ -139,6 +139,24 @@ class RangeRecords:
     w_online: list[np.ndarray] = field(default_factory=list)
     r_online: list[np.ndarray] = field(default_factory=list)
     evidence: list[np.ndarray] = field(default_factory=list)  # classifier log-odds, nats
+    _forgotten: int = 0  # entries before this one have been emptied (`forget`)
+
+    def forget(self, before_k: int) -> None:
+        """Empty the records of keyframes before `before_k` (live use: their ranges are out
+        of every window); the entries stay, empty, so record indices keep their meaning."""
+        i = self._forgotten
+        names = ("k", "anchor", "z", "t_ns", "tag_in_kf", "g_online", "w_online", "r_online",
+                 "evidence")
+        empty: dict[str, np.ndarray] = {}  # one shared empty array per column (a view
+        # `x[:0]` would keep x alive)
+        while i < len(self.k) and (len(self.k[i]) == 0 or int(self.k[i][0]) < before_k):
+            for name in names:
+                col = getattr(self, name)
+                if name not in empty:
+                    empty[name] = np.zeros((0, *col[i].shape[1:]), col[i].dtype)
+                col[i] = empty[name]
+            i += 1
+        self._forgotten = i
 
     def arrays(self) -> dict[str, np.ndarray]:
         if not self.k:

@@ -77,6 +77,8 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 # sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
+LIVE_LATENCY_KEPT = 10_000  # update latencies `forget_before` keeps (16 min at 10 Hz)
+_PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
 
 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
@@ -336,9 +338,12 @@ class GraphEstimator:
         h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
         d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
         e = d + mix.mu_nlos
-        pairs, inv = np.unique(np.stack([anchor, seg], axis=1), axis=0, return_inverse=True)
-        e_pair = np.full(len(pairs), np.nan)
-        for i, (a, sg) in enumerate(pairs.tolist()):
+        # the (anchor, segment) pairs, sorted by anchor then segment (segments >= 0: the
+        # builder drops ranges before its first keyframe), as one int64 code each
+        code, inv = np.unique(anchor.astype(np.int64) * _PAIR + seg, return_inverse=True)
+        e_pair = np.full(len(code), np.nan)
+        for i, (a, sg) in enumerate(zip((code // _PAIR).tolist(), (code % _PAIR).tolist(),
+                                        strict=True)):
             if (a, sg) in b.e_created:
                 try:
                     e_pair[i] = sm.double(nlos_key(a, sg))
@@ -348,8 +353,8 @@ class GraphEstimator:
         e = np.where(np.isnan(e_r), e, e_r)
         r_los = z - h - d
         r_nlos = z - h - e
+        g_cur = np.concatenate([rb.g for rb in batches])
         if SEARCH:
-            g_cur = np.concatenate([rb.g for rb in batches])
             u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
             hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
             self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
@@ -375,16 +380,19 @@ class GraphEstimator:
                                 float(prior[sel[0]]))
         off = 0
         stat_age = now - round(SMOOTHED_STAT_AGE_S * NS_PER_S)
-        for rb in batches:
-            n = len(rb.z)
+        # which batches have a range to replace, in one pass (most have none)
+        moved = np.abs(g - g_cur) > REVIEW_CHANGE
+        sizes = [len(rb.z) for rb in batches]
+        any_moved = np.add.reduceat(moved, np.cumsum([0, *sizes[:-1]])) > 0
+        for rb, n, has in zip(batches, sizes, any_moved.tolist(), strict=True):
             gb, eb = g[off:off + n], e[off:off + n]
             if not rb.counted and b.time_of(rb.ka) <= stat_age:
                 rb.counted = True
                 b.add_smoothed_residuals(r_los[off:off + n], gb)
             off += n
-            changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
-            if len(changed) == 0:
+            if not has:
                 continue
+            changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if self._review_inc is None:
                 self._review_inc = Increment()
             inc = self._review_inc
@@ -509,6 +517,27 @@ class GraphEstimator:
         except RuntimeError as exc:  # pragma: no cover - priors on every key: cannot fail
             raise EstimatorError(f"graph re-anchoring failed: {exc}") from None
 
+    def forget_before(self, t_ns: int) -> None:
+        """isam2 only (live use, `uwbfuse.Localizer`): drop what only the offline outputs
+        (isam2-smoothed, batch) and the report's totals keep of the time before `t_ns`,
+        which must lie before the lag window: keyframe estimates, range records, wheel
+        samples, step epochs; latency samples are kept for the last LIVE_LATENCY_KEPT
+        updates. Memory then stays flat however long the run; `report()` counts the
+        ranges since `t_ns` only. The causal estimates are unchanged."""
+        b = self.builder
+        if self.method is not Method.ISAM2 or b is None:
+            return
+        t_ns = min(int(t_ns), b.time_of(b.k) - round(self.cfg.graph.lag * NS_PER_S))
+        k_old = min((t_ns - b.t0) // b.period_ns, self._saved_upto)
+        for kf in (self._kf_pose, self._kf_vel, self._kf_bias, self._kf_cov, self._kf_pred):
+            for k in [k for k in kf if k < k_old]:
+                del kf[k]
+        b.records.forget(int(k_old))
+        self.wheel.drop_before(t_ns)
+        self._all_steps = [s for s in self._all_steps if s >= t_ns]
+        for lat in (self._update_latency, self._cov_latency):
+            del lat[:-LIVE_LATENCY_KEPT]
+
     # ------------------------------------------------------------------ output
     @property
     def provisional(self) -> bool:
@@ -597,6 +626,22 @@ class GraphEstimator:
 
     def _run_batch(self) -> None:
         b = self.builder
+        assert b is not None
+        graph, initial, rec = self.batch_inputs()
+        self._batch = offline.solve(self.cfg, graph, initial, rec,
+                                    self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
+                                    has_wheel=b.has_wheel, with_scale=b.with_scale,
+                                    wheel=b.wheel_records,
+                                    online_verdict=b.prequential_verdict(),
+                                    planar=b.planar)
+
+    def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
+                                    dict[str, np.ndarray]]:
+        """batch only, after the online pass: what `offline.solve` starts from: the
+        recorded non-range factors, the initial values (the online pass's keyframes as
+        they left the window, anchors, range biases) and the range records
+        (`RangeRecords.arrays`). `graph.reference` solves the same problem plainly."""
+        b = self.builder
         assert b is not None and b.full_graph is not None and b.full_values is not None
         n = b.k + 1
         initial = gtsam.Values()
@@ -612,13 +657,7 @@ class GraphEstimator:
                 initial.insert(D(a), float(b.range_bias[a]))
         if b.with_bias:
             initial.insert(C, float(np.mean(b.range_bias)) if len(b.range_bias) else 0.0)
-        rec = b.records.arrays()
-        self._batch = offline.solve(self.cfg, b.full_graph, initial, rec,
-                                    self.anchors.positions, n, b.mixture, b.t0, b.scale,
-                                    has_wheel=b.has_wheel, with_scale=b.with_scale,
-                                    wheel=b.wheel_records,
-                                    online_verdict=b.prequential_verdict(),
-                                    planar=b.planar)
+        return b.full_graph, initial, b.records.arrays()
 
     def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
         """Keyframe poses -> poses at the step epochs (linear position, nlerp attitude).

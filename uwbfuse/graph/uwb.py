@@ -138,7 +138,7 @@ def jump_log_likelihoods(
     s_stay_l = math.sqrt(2.0) * s_l
     s_stay_n = math.sqrt(2.0) * s_n
     s_jump = math.sqrt(model.sigma_slow**2 + s_n**2 + s_l**2)
-    d = np.nan_to_num(delta)
+    d = np.where(np.isnan(delta), 0.0, delta)  # finite otherwise (`residual_jumps`)
     m = np.maximum(excess, 0.1)
 
     def ll(x: np.ndarray, s: float) -> np.ndarray:
@@ -173,15 +173,21 @@ def residual_jumps_by_anchor(
     jump (NaN). One vectorised call instead of one per anchor."""
     order = np.lexsort((t_ns, anchor))
     a_s = anchor[order]
-    starts = np.flatnonzero(np.concatenate([[True], a_s[1:] != a_s[:-1]]))
+    t_s = np.asarray(t_ns, np.int64)[order]
+    r_s = np.asarray(r, np.float64)[order]
+    first = np.concatenate([[True], a_s[1:] != a_s[:-1]]) if len(a_s) else np.zeros(0, bool)
+    # each range's predecessor: the previous range of its anchor, or the anchor's lead
+    t_prev, r_prev = np.empty_like(t_s), np.empty_like(r_s)
+    t_prev[1:], r_prev[1:] = t_s[:-1], r_s[:-1]
     if lead_t is None or lead_r is None:  # a lead too old to count: the first jump is NaN
-        lt = np.full(len(starts), np.iinfo(np.int64).min // 2, dtype=np.int64)
-        lr = np.zeros(len(starts))
+        t_prev[first] = np.iinfo(np.int64).min // 2
+        r_prev[first] = 0.0
     else:
-        lt, lr = lead_t[a_s[starts]], lead_r[a_s[starts]]
-    d = residual_jumps(np.insert(t_ns[order], starts, lt), np.insert(r[order], starts, lr))
+        t_prev[first], r_prev[first] = lead_t[a_s[first]], lead_r[a_s[first]]
+    d = r_s - r_prev  # as `residual_jumps` over each anchor's chain with its lead
+    d[((t_s - t_prev) > JUMP_MAX_GAP_NS) | ~(np.abs(d) < JUMP_MAX_M)] = np.nan
     out = np.empty(len(t_ns))
-    out[order] = np.delete(d, starts + np.arange(len(starts)))
+    out[order] = d
     return out
 
 
@@ -374,12 +380,16 @@ def los_subset_search(
     if m == 0 or m > max_anchors or len(r) < 3 * m:
         return None
     n = np.bincount(inv, minlength=m).astype(float)
-    suu = np.zeros((m, 2, 2))
-    np.add.at(suu, inv, u[:, :, None] * u[:, None, :])
-    su = np.zeros((m, 2))
-    np.add.at(su, inv, u)
-    sur = np.zeros((m, 2))
-    np.add.at(sur, inv, u * r[:, None])
+
+    def per_anchor(x: np.ndarray) -> np.ndarray:  # sums of the rows of x per anchor
+        flat = x.reshape(len(x), -1)
+        out = np.stack([np.bincount(inv, weights=flat[:, j], minlength=m)
+                        for j in range(flat.shape[1])], axis=1)
+        return out.reshape((m, *x.shape[1:]))
+
+    suu = per_anchor(u[:, :, None] * u[:, None, :])
+    su = per_anchor(u)
+    sur = per_anchor(u * r[:, None])
     sr = np.bincount(inv, weights=r, minlength=m)
     srr = np.bincount(inv, weights=r * r, minlength=m)
     p = min(max(model.p_nlos, 0.02), 0.98)

@@ -125,26 +125,36 @@ class WheelTrack:
         self._t[sl], self._v[sl], self._w[sl], self._pose[sl] = t_ns, v, omega, poses
         self._n += m
 
+    def drop_before(self, t_ns: int) -> None:
+        """Forget the samples no longer needed for queries at or after `t_ns` (the one
+        before it stays); the track's poses are absolute, so `at`, `between` and
+        `covariance` from `t_ns` on are unchanged. Compacts only when at least half the
+        samples (and 1000) can go, so the copying stays linear in the samples added."""
+        i = int(np.searchsorted(self.t, t_ns, side="left")) - 1
+        if i < max(1000, self._n // 2):
+            return
+        m = self._n - i
+        for name in ("_t", "_v", "_w", "_pose"):
+            a = getattr(self, name)
+            a[:m] = a[i:self._n].copy()
+        self._n = m
+
     def at(self, t_ns: np.ndarray | int) -> np.ndarray:
         """Track pose(s) (x, y, theta) at `t_ns` (scalar or array of ns)."""
         tq = np.atleast_1d(np.asarray(t_ns, np.int64))
-        n = len(self.t)
+        n = self._n
         if n == 0:
             return np.zeros((len(tq), 3)) if np.ndim(t_ns) else np.zeros(3)
-        i = np.searchsorted(self.t, tq, side="left")  # t[i-1] < tq <= t[i]
-        i_c = np.clip(i, 0, n - 1)
-        base_i = np.clip(i - 1, 0, n - 1)
-        base = self.pose[base_i].copy()
-        # before the first stamp: go backwards from sample 0 with its velocity
-        before = i == 0
-        base[before] = self.pose[0]
-        t_base = self.t[base_i].copy()
-        t_base[before] = self.t[0]
-        after = i >= n
-        vel_i = np.where(after, n - 1, i_c)
-        tau = (tq - t_base).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(self.v[vel_i], self.w[vel_i], tau)
-        out = se2_compose(base, np.stack([dx, dy, dth], axis=-1))
+        t = self._t[:n]
+        i = np.searchsorted(t, tq, side="left")  # t[i-1] < tq <= t[i], 0 <= i <= n
+        # the sample before: i - 1; before the first stamp, sample 0 (the track goes
+        # backwards from it with its velocity); the velocity: of the interval ending at
+        # t[i], the last one after the last stamp
+        base_i = np.maximum(i - 1, 0)
+        vel_i = np.minimum(i, n - 1)
+        tau = (tq - t[base_i]).astype(np.float64) / NS_PER_S
+        dx, dy, dth = _arcs(self._v[vel_i], self._w[vel_i], tau)
+        out = se2_compose(self._pose[base_i], np.stack([dx, dy, dth], axis=-1))
         return out if np.ndim(t_ns) else out[0]
 
     def between(self, t_a: int, t_b: int) -> np.ndarray:
