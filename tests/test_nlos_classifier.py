@@ -335,3 +335,19 @@ def test_uwb_range_fast_decode_matches_mcap_ros2() -> None:
         assert cols["rssi"][i] == np.float32(m.rssi)
         assert cols["first_path"][i] == np.float32(m.first_path_power)
         assert cols["t_ns"][i] == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+
+
+@pytest.mark.parametrize("command", ["run", "compare"])
+def test_bad_model_fails_before_the_log_is_read(tmp_path: Path, command: str,
+                                                capsys: pytest.CaptureFixture) -> None:
+    model = tmp_path / "m.skops"
+    model.write_bytes(b"not a model")
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[nlos]\nclassifier = "{model}"\n')
+    missing_log = tmp_path / "absent.mcap"  # never opened: the model is refused first
+    args = ([command, str(missing_log), "--config", str(cfg)]
+            + (["--method", "wls", "-o", str(tmp_path / "e.tum")] if command == "run"
+               else ["--methods", "wls", "--out", str(tmp_path / "out")]))
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "[nlos] classifier" in err[0] and "absent.mcap" not in err[0]

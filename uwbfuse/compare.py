@@ -214,6 +214,7 @@ def compare_log(
     """
     from uwbfuse.io.reader import read_log
     from uwbfuse.io.tum import read_tum, write_tum
+    from uwbfuse.pipeline import check_classifier
 
     config = load_config(config_path)
     method_list = parse_methods(methods)
@@ -222,6 +223,7 @@ def compare_log(
         (out / "trajectories").mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ConfigError(f"{out}: cannot create output folder: {e.strerror or e}") from None
+    check_classifier(config)  # a bad model file fails before the log is read
     log_data = read_log(log_path, config)
     if gt_path is not None:
         log_data.ground_truth = read_tum(gt_path)

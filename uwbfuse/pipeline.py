@@ -134,6 +134,15 @@ def with_covariance(config: Config, wanted: bool) -> Config:
         update={"marginal_covariances": wanted})})
 
 
+def check_classifier(config: Config) -> None:
+    """Load the `[nlos] classifier` model once, if one is set, so that a missing or bad
+    file is a one-line ConfigError before any log is read."""
+    if config.nlos.classifier:
+        from uwbfuse.positioning.nlos_classifier import load_classifier
+
+        load_classifier(config.nlos.classifier)
+
+
 def _classifier_priors(
     log: SensorLog, config: Config, streams: frozenset[str]
 ) -> Callable[[object], None]:
@@ -250,6 +259,7 @@ def run_log(
     outputs = {"-o": tum_out, "--mcap-out": mcap_out, "--cov-out": cov_out,
                "--report": report_out}
     check_output_paths(outputs, TrajectoryFileError)
+    check_classifier(config)  # a bad model file fails before the log is read
     tic = time.perf_counter()
     sensor_log = read_log(path, config)
     read_wall = time.perf_counter() - tic
