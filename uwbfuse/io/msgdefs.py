@@ -11,6 +11,7 @@ IMU = "sensor_msgs/msg/Imu"
 ODOMETRY = "nav_msgs/msg/Odometry"
 RANGE = "sensor_msgs/msg/Range"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 
@@ -45,6 +46,7 @@ _DEFS: dict[str, str] = {
         "float32 min_range\nfloat32 max_range\nfloat32 range"
     ),
     POSE_STAMPED: "std_msgs/Header header\ngeometry_msgs/Pose pose",
+    POSE_WITH_COVARIANCE_STAMPED: "std_msgs/Header header\ngeometry_msgs/PoseWithCovariance pose",
     TRANSFORM_STAMPED: (
         "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform"
     ),
@@ -64,6 +66,9 @@ _DEPS: dict[str, tuple[str, ...]] = {
     RANGE: ("std_msgs/Header", "builtin_interfaces/Time"),
     POSE_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose",
                    "geometry_msgs/Point", "geometry_msgs/Quaternion"),
+    POSE_WITH_COVARIANCE_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time",
+                                   "geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose",
+                                   "geometry_msgs/Point", "geometry_msgs/Quaternion"),
     TRANSFORM_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Transform",
                         "geometry_msgs/Vector3", "geometry_msgs/Quaternion"),
     JOINT_STATE: ("std_msgs/Header", "builtin_interfaces/Time"),
