@@ -5,7 +5,8 @@ Topics and types (CONTRACT.md): /imu `sensor_msgs/msg/Imu` (frame imu_link), /wh
 `nav_msgs/msg/Odometry` (odom -> base_link, twist.linear.x = v, twist.angular.z = omega),
 /uwb/range `sensor_msgs/msg/Range` (header.frame_id = anchor id), /ground_truth
 `geometry_msgs/msg/PoseStamped` (frame map), and where the log has external poses
-/localization/pose `geometry_msgs/msg/PoseWithCovarianceStamped` (frame map). Every message's log time is its header stamp.
+/localization/pose `geometry_msgs/msg/PoseWithCovarianceStamped` (frame map).
+Every message's log time is its header stamp.
 
 Messages are encoded by the vectorised encoders of `cdr_fast` (byte-identical to
 `mcap_ros2.writer`, checked in the tests) and written in stamp order by the vectorised
