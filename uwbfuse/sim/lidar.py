@@ -3,7 +3,10 @@
 publishes as `geometry_msgs/msg/PoseWithCovarianceStamped`.
 
 Base frame in the map frame at `pose_rate` Hz (stamps k / pose_rate, k >= 1): the true
-pose plus white noise (`pose_sigma_xy` m per axis, `pose_sigma_yaw` rad). No pose inside
+pose plus noise (`pose_sigma_xy` m per axis, `pose_sigma_yaw` rad in total) of which the
+share `pose_corr` of the variance is slow, an AR(1) process with correlation time
+`pose_tau_s` (a scan match errs alike at neighbouring places: map errors, the same few
+features in view), the rest white. No pose inside
 the `pose_dropouts` boxes (long featureless aisles where scan matching degenerates).
 Wrong matches start as a Poisson process (`pose_wrong_rate` per second) and last a uniform
 `pose_wrong_duration` s; during one the published pose is offset by a constant jump of
@@ -21,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.signal import lfilter
 
 from uwbfuse.sim.scenarios import Scenario
 from uwbfuse.sim.trajectory import Timeline, evaluate
@@ -40,14 +44,26 @@ class LidarPoses:
     wrong: NDArray[np.bool_]
 
 
+def _noise(rng: np.random.Generator, n: int, sc: Scenario) -> F64:
+    """(n, 3) unit-variance noise: AR(1) share `pose_corr` (stationary from the start),
+    white the rest."""
+    a = float(np.exp(-1.0 / (sc.pose_rate * sc.pose_tau_s)))
+    w = rng.normal(0.0, 1.0, (n, 3))
+    y0 = rng.normal(0.0, 1.0, (1, 3))
+    slow, _ = lfilter([np.sqrt(1.0 - a * a)], [1.0, -a], rng.normal(0.0, 1.0, (n, 3)),
+                      axis=0, zi=a * y0)
+    return np.sqrt(sc.pose_corr) * slow + np.sqrt(1.0 - sc.pose_corr) * w
+
+
 def lidar_poses(sc: Scenario, tl: Timeline, duration_s: float, rng: np.random.Generator,
                 wrong_rng: np.random.Generator) -> LidarPoses:
     """The localiser's poses over [0, duration_s] (module docstring)."""
     n = int(np.floor(duration_s * sc.pose_rate + 1e-9))
     t = np.arange(1, n + 1) / sc.pose_rate
     kin = evaluate(tl, t)
-    xy = kin.position + rng.normal(0.0, sc.pose_sigma_xy, (n, 2))
-    yaw = kin.yaw + rng.normal(0.0, sc.pose_sigma_yaw, n)
+    noise = _noise(rng, n, sc)
+    xy = kin.position + sc.pose_sigma_xy * noise[:, :2]
+    yaw = kin.yaw + sc.pose_sigma_yaw * noise[:, 2]
     keep = np.ones(n, dtype=bool)
     for box in sc.pose_dropouts:
         keep &= ~box.contains(kin.position)

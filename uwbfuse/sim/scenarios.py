@@ -115,6 +115,8 @@ class Scenario:
     pose_rate: float = 10.0  # Hz
     pose_sigma_xy: float = 0.03  # position noise std per axis, m
     pose_sigma_yaw: float = 0.01  # heading noise std, rad (0.6 deg)
+    pose_corr: float = 0.7  # share of the pose noise variance that is slow (AR(1))
+    pose_tau_s: float = 3.0  # correlation time of the slow part, s
     pose_dropouts: tuple[Box, ...] = ()  # no pose inside (featureless aisles)
     pose_wrong_rate: float = 1.0 / 30.0  # wrong matches per second
     pose_wrong_jump: tuple[float, float] = (0.5, 2.0)  # their offset, uniform, m
@@ -324,10 +326,10 @@ WAREHOUSE_LIDAR = replace(
     WAREHOUSE,
     name="warehouse-lidar",
     description="the warehouse with a LiDAR localiser (UKF paper): poses at 10 Hz, 3 cm / "
-    "0.6 deg noise, none in the middle 18 m of the second and fourth aisles (featureless), "
+    "0.6 deg noise, none in the middle 18 m of the first and third aisles (featureless), "
     "a wrong match of 0.5-2 m for 0.5-2 s every 30 s on average",
     streams=("imu", "wheel", "uwb", "pose"),
-    pose_dropouts=(Box(11.0, 6.0, 29.0, 9.0), Box(11.0, 16.0, 29.0, 19.0)),
+    pose_dropouts=(Box(12.0, 1.0, 30.0, 4.0), Box(11.0, 11.0, 29.0, 14.0)),
 )
 
 SCENARIOS: dict[str, Scenario] = {
