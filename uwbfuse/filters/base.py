@@ -148,6 +148,12 @@ class StreamingFilter:
     #: base steps): one base step does not reach back into the right basin.
     SHORT_RUN = 3
     SHORT_STREAK = 1
+    #: External poses gated without a break for longer than this (ns) mean the state is
+    #: off (drifted through a pose dropout on too tight a covariance), not the localiser:
+    #: its wrong matches last a second or two. The covariance is then widened
+    #: (`_inflate(POSE_INFLATE)`) and the pose tried again.
+    POSE_RECOVER_NS = 3_000_000_000
+    POSE_INFLATE = 4.0
 
     def __init__(
         self,
@@ -176,6 +182,8 @@ class StreamingFilter:
         self._poses = PoseBuffer()  # external poses not yet applied (all stamps > t_cur)
         self.poses_used = 0
         self.poses_gated = 0
+        self.pose_resets = 0
+        self._pose_gated_since: int | None = None
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.range_noise = RangeNoise(config, len(anchors))
@@ -283,8 +291,17 @@ class StreamingFilter:
         if not np.any(at):
             return
         for i in np.flatnonzero(at).tolist():
-            if self._pose_update(p[i], q[i], c[i]):
+            ok = self._pose_update(p[i], q[i], c[i])
+            if not ok:
+                if self._pose_gated_since is None:
+                    self._pose_gated_since = t_b
+                elif t_b - self._pose_gated_since > self.POSE_RECOVER_NS:
+                    self._inflate(self.POSE_INFLATE)
+                    self.pose_resets += 1
+                    ok = self._pose_update(p[i], q[i], c[i])
+            if ok:
                 self.poses_used += 1
+                self._pose_gated_since = None
             else:
                 self.poses_gated += 1
         self._poses.keep_after(t_b)
@@ -401,6 +418,7 @@ class StreamingFilter:
             "repeated_ranges": self.repeated,
             "poses_used": self.poses_used,
             "poses_gated": self.poses_gated,
+            "pose_gate_resets": self.pose_resets,
             "stale_samples": self.stale,
             "range_noise": self.range_noise.report(),
         }
