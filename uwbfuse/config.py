@@ -412,8 +412,9 @@ class PoseConfig(_Section):
         RobustKernel.CAUCHY, description="robust loss of the graph's pose factor against "
         "a localiser's wrong matches: huber | cauchy | tukey | dcs | geman_mcclure | none")
     kernel_threshold: float = Field(
-        1.0, gt=0, description="its threshold on the whitened pose residual (Mahalanobis "
-        "norm), in sigmas")
+        4.0, gt=0, description="its threshold on the whitened pose residual (Mahalanobis "
+        "norm), in sigmas (4: a pose that disagrees with the odometry by a wheel slip's "
+        "few sigmas keeps most of its weight, a wrong match's metres almost none)")
     gate_probability: float = Field(
         0.999, gt=0, lt=1, description="ekf/ukf: chi-square gate on the pose innovation "
         "(0..1); poses outside it are rejected and counted")

@@ -12,7 +12,7 @@ Wrong matches start as a Poisson process (`pose_wrong_rate` per second) and last
 `pose_wrong_duration` s; during one the published pose is offset by a constant jump of
 uniform length `pose_wrong_jump` m in a uniform direction (the matcher locked onto a
 similar-looking shelf), with the same confident covariance as always. The covariance is
-the localiser's 2-D one (x, y, yaw), zero for z, roll and pitch, as AMCL publishes it.
+the localiser's 2-D one (x, y, yaw), with z, roll and pitch at the reader's floors.
 
 Noise and dropouts draw from `rng`, the wrong matches from `wrong_rng`, so a log without
 wrong matches (`pose_wrong_rate = 0`) has exactly the same poses otherwise.
@@ -88,4 +88,8 @@ def lidar_poses(sc: Scenario, tl: Timeline, duration_s: float, rng: np.random.Ge
     cov = np.zeros((n, 6, 6))
     cov[:, 0, 0] = cov[:, 1, 1] = sc.pose_sigma_xy**2
     cov[:, 5, 5] = sc.pose_sigma_yaw**2
+    # z, roll and pitch: a 2-D localiser does not estimate them; stated as loose as the
+    # reader's default floors (0.02 m, 0.01 rad), so in-memory logs equal read-back ones
+    cov[:, 2, 2] = 0.02**2
+    cov[:, 3, 3] = cov[:, 4, 4] = 0.01**2
     return LidarPoses(t[keep], pos[keep], quat[keep], cov[keep], wrong[keep])
