@@ -289,3 +289,28 @@ def test_uwb_helps_through_a_pose_dropout() -> None:
     no_uwb = dataclasses.replace(log, ranges=None)
     for method in (Method.EKF, Method.UKF):
         assert _ate(log, method) < _ate(no_uwb, method)
+
+
+def test_fast_pose_with_covariance_decoder_matches_mcap_ros2(tmp_path: Path) -> None:
+    """test that the vectorised PoseWithCovarianceStamped decode agrees with mcap_ros2"""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    poses = _poses()
+    path = tmp_path / "p.mcap"
+    _write_pose_log(path, poses)
+    items = []
+    with path.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, _channel, message, ros in reader.iter_decoded_messages(
+                topics=["/localization/pose"]):
+            items.append((message.data, ros))
+    ok, cols = cdr_fast.decode_fixed(msgdefs.POSE_WITH_COVARIANCE_STAMPED,
+                                     [d for d, _ in items])
+    assert ok.all() and len(items) == len(poses)
+    for i, (_, m) in enumerate(items):
+        p, q = m.pose.pose.position, m.pose.pose.orientation
+        assert tuple(cols["position"][i]) == (p.x, p.y, p.z)
+        assert tuple(cols["quat"][i]) == (q.x, q.y, q.z, q.w)
+        assert cols["covariance"][i].reshape(36).tolist() == list(m.pose.covariance)
+        assert cols["t_ns"][i] == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
