@@ -105,6 +105,11 @@ class Extrinsics(_Section):
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
         description="IMU pose in the base frame: x y z (m) qx qy qz qw",
     )
+    lidar_map_in_map: tuple[float, float, float, float, float, float, float] = Field(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+        description="pose of the frame of the external poses ([topics] pose, e.g. a LiDAR "
+        "localiser's map) in the map frame: x y z (m) qx qy qz qw",
+    )
 
 
 class Topics(_Section):
@@ -113,6 +118,9 @@ class Topics(_Section):
         "/wheel_odom", description="nav_msgs/msg/Odometry or sensor_msgs/msg/JointState topic"
     )
     uwb: str = Field("/uwb/range", description="UWB range topic")
+    pose: str = Field(
+        "/localization/pose", description="external pose topic (optional; a LiDAR or "
+        "scan-matching localiser): geometry_msgs/msg/PoseWithCovarianceStamped or PoseStamped")
     ground_truth: str = Field("/ground_truth", description="ground-truth pose topic (eval only)")
 
 
@@ -398,6 +406,33 @@ class NlosConfig(_Section):
         "probability, the wls weights and the ekf/ukf range weighting")
 
 
+class PoseConfig(_Section):
+    """External poses ([topics] pose): their noise and the robust kernel of their factor."""
+
+    min_sigma_position: float = Field(
+        0.02, gt=0, description="floor on the std of a PoseWithCovarianceStamped position, "
+        "m (a localiser's stated covariance is often too small: a scan match is not "
+        "better than the map it matches against)")
+    min_sigma_rotation: float = Field(
+        0.01, gt=0, description="floor on the std of its attitude (yaw; roll, pitch in "
+        "3-D), rad")
+    sigma_position: float = Field(
+        0.05, gt=0, description="position std of a PoseStamped (no covariance) or of a "
+        "message whose covariance is all zero (ROS: unknown), m")
+    sigma_rotation: float = Field(
+        0.02, gt=0, description="attitude std of such a message, rad")
+    robust_kernel: RobustKernel = Field(
+        RobustKernel.CAUCHY, description="robust loss of the graph's pose factor against "
+        "a localiser's wrong matches: huber | cauchy | tukey | dcs | geman_mcclure | none")
+    kernel_threshold: float = Field(
+        4.0, gt=0, description="its threshold on the whitened pose residual (Mahalanobis "
+        "norm), in sigmas (4: a pose that disagrees with the odometry by a wheel slip's "
+        "few sigmas keeps most of its weight, a wrong match's metres almost none)")
+    gate_probability: float = Field(
+        0.999, gt=0, lt=1, description="ekf/ukf: chi-square gate on the pose innovation "
+        "(0..1); poses outside it are rejected and counted")
+
+
 class OutputConfig(_Section):
     rate: float = Field(10.0, gt=0, description="output poses per second for filters, Hz")
 
@@ -509,6 +544,7 @@ class Config(_Section):
     ukf: UkfConfig = Field(default_factory=UkfConfig)
     wls: WlsConfig = Field(default_factory=WlsConfig)
     lkf: LkfConfig = Field(default_factory=LkfConfig)
+    pose: PoseConfig = Field(default_factory=PoseConfig)
     output: OutputConfig = Field(default_factory=OutputConfig)
     nlos: NlosConfig = Field(default_factory=NlosConfig)
     map: MapConfig = Field(default_factory=MapConfig)

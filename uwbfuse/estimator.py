@@ -83,6 +83,12 @@ class Estimator(Protocol):
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
         """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
 
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None:
+        """External-pose batch (methods whose spec `uses_pose`): stamps (N,) ns, base
+        position (N,3) m and quaternion (N,4) xyzw in the map frame, covariance (N,6,6)
+        ROS order (x, y, z, rot x, rot y, rot z; map axes)."""
+
     def step(self, t_ns: int) -> None:
         """All data with stamps <= t_ns has been added: process it."""
 
@@ -159,6 +165,9 @@ class WithFallback:
         """`estimate()` is not the primary's own (started) estimate: the fallback's fix,
         a held provisional pose or the primary's provisional one."""
         return self._provisional
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None:
+        self.primary.add_poses(t_ns, position, quat_xyzw, covariance)  # WLS uses none
 
     def step(self, t_ns: int) -> None:
         self.primary.step(t_ns)
@@ -300,6 +309,13 @@ def run_streaming(
         ends = np.searchsorted(log.ranges.t_ns, epochs, side="right")
         cols = (log.ranges.t_ns, log.ranges.anchor, log.ranges.range)
         streams.append((estimator.add_ranges, cols, ends))
+    if log.pose is not None and len(log.pose):
+        ends = np.searchsorted(log.pose.t_ns, epochs, side="right")
+        cov = log.pose.covariance
+        if cov is None:
+            raise ValueError("external poses need their covariance (the reader sets it)")
+        cols = (log.pose.t_ns, log.pose.position, log.pose.quat_xyzw, cov)
+        streams.append((estimator.add_poses, cols, ends))
 
     starts = [0] * len(streams)
     poses: list[PoseEstimate] = []

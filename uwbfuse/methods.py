@@ -7,7 +7,8 @@ whether it uses ranges (and so an anchor map), whether its output is a smoothed 
 trajectory, whether it classifies ranges LOS/NLOS, and its rank as a reference (tables,
 plots and alignments take the best-ranked method present). Each implementation module
 exposes `make(method, config, anchors, streams) -> Estimator`, where `streams` is the set of
-sensor streams the log has ({"imu", "wheel", "uwb"}).
+sensor streams the log has ({"imu", "wheel", "uwb"}, and "pose" for methods that use
+external poses).
 """
 
 from __future__ import annotations
@@ -59,6 +60,9 @@ class MethodSpec:
     without_ranges: frozenset[str] | None = None
     smoothed: bool = False  # writes its final (smoothed) trajectory, not the causal one
     classifies_ranges: bool = False  # reports a per-range LOS/NLOS classification
+    # fuses external poses (role `pose`: `add_poses`); with them it also runs without
+    # ranges on any log that has an IMU or wheels
+    uses_pose: bool = False
     # rank as a reference (0 best): residuals without ground truth, the plots' frame
     reference_rank: int | None = None
 
@@ -68,15 +72,16 @@ _UWB = frozenset({"uwb"})
 _IMU_WHEEL = frozenset({"imu", "wheel"})
 METHODS: dict[Method, MethodSpec] = {
     Method.BATCH: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, smoothed=True,
-                             classifies_ranges=True, reference_rank=0),
+                             classifies_ranges=True, uses_pose=True, reference_rank=0),
     Method.ISAM2_SMOOTHED: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, smoothed=True,
-                                      classifies_ranges=True, reference_rank=1),
+                                      classifies_ranges=True, uses_pose=True,
+                                      reference_rank=1),
     Method.ISAM2: MethodSpec(_GRAPH, _UWB, without_ranges=_IMU_WHEEL, classifies_ranges=True,
-                             reference_rank=2),
+                             uses_pose=True, reference_rank=2),
     Method.EKF: MethodSpec("uwbfuse.filters.ekf", _UWB, without_ranges=_IMU_WHEEL,
-                           reference_rank=3),
+                           uses_pose=True, reference_rank=3),
     Method.UKF: MethodSpec("uwbfuse.filters.ukf", _UWB, without_ranges=_IMU_WHEEL,
-                           reference_rank=4),
+                           uses_pose=True, reference_rank=4),
     Method.LKF: MethodSpec("uwbfuse.filters.lkf", _UWB, reference_rank=5),
     Method.WLS: MethodSpec("uwbfuse.filters.wls", _UWB, reference_rank=6),
     Method.IMU: MethodSpec("uwbfuse.filters.dead_reckoning", frozenset({"imu"}),

@@ -52,7 +52,7 @@ class RunResult:
 
 
 def sensor_streams(log: SensorLog) -> frozenset[str]:
-    """The sensor streams present (non-empty) in `log`: subset of {imu, wheel, uwb}."""
+    """The sensor streams present (non-empty) in `log`: subset of {imu, wheel, uwb, pose}."""
     present = set()
     if log.imu is not None and len(log.imu):
         present.add("imu")
@@ -60,15 +60,21 @@ def sensor_streams(log: SensorLog) -> frozenset[str]:
         present.add("wheel")
     if log.ranges is not None and len(log.ranges):
         present.add("uwb")
+    if log.pose is not None and len(log.pose):
+        present.add("pose")
     return frozenset(present)
 
 
 def check_inputs(log: SensorLog, method: Method, config: Config) -> frozenset[str]:
     """Raise a one-line error if `log` lacks what `method` needs; return the streams."""
     streams = sensor_streams(log)
+    if not method.spec.uses_pose:
+        streams = streams - {"pose"}
     alone = WITHOUT_RANGES.get(method)
     if "uwb" not in streams and alone is not None and alone <= streams:
         return streams  # IMU + wheels without UWB: no anchor map needed
+    if "uwb" not in streams and "pose" in streams and streams & {"imu", "wheel"}:
+        return streams  # external poses with an IMU or wheels: no anchor map needed
     if method.uses_ranges and log.anchors is None:
         raise AnchorMapError(
             f"{log.source}: no anchor map: give an [anchors] table in the config or a "
@@ -182,6 +188,7 @@ def estimate(
     sensors_only = SensorLog(
         imu=log.imu, wheel=log.wheel, ranges=log.ranges, anchors=log.anchors,
         source=log.source, report=log.report,
+        pose=log.pose if "pose" in streams else None,
     )
     estimator = make_estimator(method, config, log.anchors, streams)
     priors = _classifier_priors(log, config, streams)
@@ -189,7 +196,7 @@ def estimate(
     if method is not Method.WLS and "uwb" in streams and log.anchors is not None:
         # Poses from the first motion on (contract): UWB-only fixes until the method has
         # its own start (heading needs some motion).
-        fallback = make_estimator(Method.WLS, config, log.anchors, streams)
+        fallback = make_estimator(Method.WLS, config, log.anchors, streams - {"pose"})
         priors(fallback)
         estimator = WithFallback(estimator, fallback)
     epochs = output_epochs(sensors_only, config.output.rate)

@@ -13,6 +13,9 @@ Frames:
 - Ranges: tag-antenna-to-anchor distance (m), anchor given as an index into `AnchorMap`.
 - Ground truth and trajectories: pose of the base frame in the map frame (anchor frame,
   z up), quaternions in (x, y, z, w) order.
+- External poses (`SensorLog.pose`, a LiDAR / scan-matching localiser): a `PoseStream` of
+  the base frame in the map frame (the reader has applied `[extrinsics]
+  lidar_map_in_map`), with each pose's covariance (floored by `[pose]`).
 """
 
 from __future__ import annotations
@@ -145,6 +148,12 @@ class PoseStream:
     def __len__(self) -> int:
         return len(self.t_ns)
 
+    def slice(self, start: int, stop: int) -> PoseStream:
+        """Rows [start, stop) as a new stream sharing memory."""
+        cov = None if self.covariance is None else self.covariance[start:stop]
+        return PoseStream(self.t_ns[start:stop], self.position[start:stop],
+                          self.quat_xyzw[start:stop], self.has_orientation, cov)
+
     @property
     def t_s(self) -> F64:
         """Stamps in seconds (float64)."""
@@ -209,11 +218,12 @@ class SensorLog:
     source: str = ""
     report: ReadReport = field(default_factory=ReadReport)
     map: MapConfig | None = None
+    pose: PoseStream | None = None  # external poses (optional role `pose`)
 
     def time_span_ns(self) -> tuple[int, int]:
         """First and last stamp over the sensor streams (ground truth excluded)."""
         firsts, lasts = [], []
-        for s in (self.imu, self.wheel, self.ranges):
+        for s in (self.imu, self.wheel, self.ranges, self.pose):
             if s is not None and len(s):
                 firsts.append(int(s.t_ns[0]))
                 lasts.append(int(s.t_ns[-1]))

@@ -80,13 +80,14 @@ def default_initialiser(
     sparse ranges that the graph uses too: `positioning.sparse_start`), imported lazily."""
     try:
         from uwbfuse.positioning.initialisation import Initialiser
-        from uwbfuse.positioning.sparse_start import SparseStartInitialiser
     except ImportError as exc:  # pragma: no cover - only while the module is missing
         raise EstimatorError(f"filter initialiser unavailable: {exc}") from exc
+    from uwbfuse.positioning.pose_start import PoseStartInitialiser
+
     # the filters take the wheel-track start only where multilateration has no fix at all
     # (Plaza1): on Labyrinth, where it has them, it moved the EKF 0.120 -> 0.163 m
-    return SparseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
-                                  streams, only_without_fixes=True)
+    return PoseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
+                                streams, only_without_fixes=True)
 
 
 @dataclass
@@ -154,6 +155,12 @@ class StreamingFilter:
     #: anchor's ranges share a slowly varying error (antenna delay, the slow part of an
     #: NLOS excess) that independent per-range noise cannot describe.
     RANGE_BIAS = False
+    #: External poses gated without a break for longer than this (ns) mean the state is
+    #: off (drifted through a pose dropout on too tight a covariance), not the localiser:
+    #: its wrong matches last a second or two. The covariance is then widened
+    #: (`_inflate(POSE_INFLATE)`) and the pose tried again.
+    POSE_RECOVER_NS = 3_000_000_000
+    POSE_INFLATE = 4.0
 
     def __init__(
         self,
@@ -165,8 +172,11 @@ class StreamingFilter:
         self.has_imu = "imu" in streams
         self.has_wheel = "wheel" in streams
         self.has_uwb = "uwb" in streams
-        if not self.has_uwb and not (self.has_imu and self.has_wheel):
-            raise EstimatorError("Kalman baselines need UWB ranges, or an IMU and wheels")
+        self.has_pose = "pose" in streams
+        if not self.has_uwb and not (self.has_imu and self.has_wheel) and not (
+                self.has_pose and (self.has_imu or self.has_wheel)):
+            raise EstimatorError("Kalman baselines need UWB ranges or external poses, or an "
+                                 "IMU and wheels")
         self.config = config
         self.anchors = anchors
         self.anchor_pos: F64 = np.asarray(anchors.positions, dtype=np.float64)
@@ -174,6 +184,13 @@ class StreamingFilter:
             raise EstimatorError(
                 "Kalman baselines need an IMU or wheel odometry besides UWB ranges"
             )
+        from uwbfuse.positioning.pose_start import PoseBuffer
+
+        self._poses = PoseBuffer()  # external poses not yet applied (all stamps > t_cur)
+        self.poses_used = 0
+        self.poses_gated = 0
+        self.pose_resets = 0
+        self._pose_gated_since: int | None = None
         self.tag_b: F64 = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.has_tag_lever = bool(np.any(self.tag_b != 0.0))
         self.range_noise = RangeNoise(config, len(anchors))
@@ -282,6 +299,51 @@ class StreamingFilter:
         if self.range_priors is None or not len(t_ns):
             return None
         return self.range_priors.log_odds(self.range_priors.take(t_ns, anchor))
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None:
+        """External poses: stamps (N,) ns, base position (N,3) m and quaternion (N,4) xyzw
+        in the map frame, covariance (N,6,6) ROS order; applied at their own stamps by the
+        gated update of `filters.pose_update` (`_pose_update`)."""
+        if self._init_pending:
+            add = getattr(self.initialiser, "add_poses", None)
+            if add is not None:
+                add(t_ns, position, quat_xyzw, covariance)
+        self._poses.add(t_ns, position, quat_xyzw, covariance)
+
+    def _pose_edges(self, t_ns: int) -> np.ndarray:
+        """Stamps of the buffered poses in (t_cur, t_ns] (sorted); older ones dropped."""
+        assert self.t_cur is not None
+        t = self._poses.arrays()[0]
+        if not len(t):
+            return t
+        return np.unique(t[(t > self.t_cur) & (t <= t_ns)])
+
+    def _apply_poses(self, t_b: int) -> None:
+        """Gated pose updates with the poses stamped t_b (the state is at t_b)."""
+        t, p, q, c = self._poses.arrays()
+        at = t == t_b
+        if not np.any(at):
+            return
+        for i in np.flatnonzero(at).tolist():
+            ok = self._pose_update(p[i], q[i], c[i])
+            if not ok:
+                if self._pose_gated_since is None:
+                    self._pose_gated_since = t_b
+                elif t_b - self._pose_gated_since > self.POSE_RECOVER_NS:
+                    self._inflate(self.POSE_INFLATE)
+                    self.pose_resets += 1
+                    ok = self._pose_update(p[i], q[i], c[i])
+            if ok:
+                self.poses_used += 1
+                self._pose_gated_since = None
+            else:
+                self.poses_gated += 1
+        self._poses.keep_after(t_b)
+
+    def _pose_update(self, position: np.ndarray, quat_xyzw: np.ndarray,
+                     covariance: np.ndarray) -> bool:
+        """Update the state with one external pose at t_cur; False when gated."""
+        raise NotImplementedError
 
     def step(self, t_ns: int) -> None:
         """Process every buffered sample with stamp <= t_ns in time order; predict to t_ns."""
@@ -326,7 +388,8 @@ class StreamingFilter:
         rt, ra, rr, wt, wv = self._measurements(t_ns)
         if self.range_noise.scale != 1.0:
             rr = rr / self.range_noise.scale
-        if t_ns - self.t_cur <= MAX_WINDOW_NS:  # one window (the 10 Hz output steps)
+        pose_t = self._pose_edges(t_ns) if self.has_pose else np.zeros(0, np.int64)
+        if t_ns - self.t_cur <= MAX_WINDOW_NS and not len(pose_t):  # one 10 Hz output step
             used = self._window(t_ns, rt, ra, rr, wt, wv)
             if len(rt):
                 self._count(ra, used)
@@ -335,6 +398,9 @@ class StreamingFilter:
             return
         n_win = -(-(t_ns - self.t_cur) // MAX_WINDOW_NS)
         edges = self.t_cur + (t_ns - self.t_cur) * np.arange(1, n_win + 1) // n_win
+        if len(pose_t):  # windows end at the poses' stamps: each applied at its own time
+            edges = np.union1d(edges, pose_t)
+            n_win = len(edges)
         r_end = np.searchsorted(rt, edges, side="right")
         w_end = np.searchsorted(wt, edges, side="right")
         r0 = w0 = 0
@@ -345,6 +411,8 @@ class StreamingFilter:
             if r1 > r0:
                 self._count(ra[r0:r1], used)
             self.t_cur = t_b
+            if len(pose_t):
+                self._apply_poses(t_b)
             r0, w0 = r1, w1
         self._trim_inputs()
 
@@ -388,6 +456,9 @@ class StreamingFilter:
             "ranges_gated": {ids[i]: n for i, n in sorted(self.gated.items())},
             "gate_resets": self.gate_resets,
             "repeated_ranges": self.repeated,
+            "poses_used": self.poses_used,
+            "poses_gated": self.poses_gated,
+            "pose_gate_resets": self.pose_resets,
             "stale_samples": self.stale,
             "range_noise": self.range_noise.report(),
             "range_bias": {ids[i]: round(float(b), 4)
@@ -706,7 +777,8 @@ def build_filter(
     the planar wheel-driven one otherwise. Raises EstimatorError without anchors, except on
     a log without UWB that has an IMU and wheels (the filter then starts at the map origin,
     heading zero, and fuses the two)."""
-    if "uwb" not in streams and {"imu", "wheel"} <= streams:
+    if "uwb" not in streams and ({"imu", "wheel"} <= streams or (
+            "pose" in streams and streams & {"imu", "wheel"})):
         anchors = AnchorMap((), np.zeros((0, 3)))
     elif anchors is None or len(anchors) == 0:
         raise EstimatorError(f"{method.value} needs an anchor map")

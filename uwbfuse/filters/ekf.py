@@ -103,6 +103,13 @@ from uwbfuse.filters.models import (
     unicycle_track,
     unicycle_transition,
 )
+from uwbfuse.filters.pose_update import (
+    PLANAR_ROWS,
+    SPATIAL_ROWS,
+    gated_update,
+    pose_measurement,
+    wrap,
+)
 from uwbfuse.streams import AnchorMap
 
 E3 = np.array([0.0, 0.0, 1.0])
@@ -314,6 +321,23 @@ class ErrorStateEkf(StreamingFilter):
             self._inject(phi @ dx0[:N_ERR])
         return used
 
+    def _pose_update(self, position: F64, quat_xyzw: F64, covariance: F64) -> bool:
+        """External pose at t_cur (`filters.pose_update`): x, y (z when not planar) and
+        yaw on the error state's dp and the global dtheta_z."""
+        rows = PLANAR_ROWS if self.planar else SPATIAL_ROWS
+        z, r = pose_measurement(position, quat_xyzw, covariance, rows)
+        n = len(z)
+        h = np.zeros((n, N_ERR))
+        h[np.arange(n - 1), np.arange(n - 1)] = 1.0  # position rows on dp
+        h[n - 1, 8] = 1.0  # yaw on dtheta_z (R = exp(dtheta) R: map axes)
+        yaw = math.atan2(self.R[1, 0], self.R[0, 0])
+        y = np.append(z[:-1] - self.p[: n - 1], wrap(z[-1] - yaw))
+        res = gated_update(self.P, h, y, r, self.config.pose.gate_probability)
+        if res.accepted:
+            self.P = res.P
+            self._inject(res.dx)
+        return res.accepted
+
     def _inject(self, dx: F64) -> None:
         self.p = self.p + dx[P_]
         self.v = self.v + dx[V_]
@@ -454,6 +478,16 @@ class UnicycleEkf(StreamingFilter):
         if dx0 is not None:
             self.x = self.x + phi @ dx0[:3]
         return used
+
+    def _pose_update(self, position: F64, quat_xyzw: F64, covariance: F64) -> bool:
+        """External pose at t_cur (`filters.pose_update`): x, y, yaw on the state."""
+        z, r = pose_measurement(position, quat_xyzw, covariance, PLANAR_ROWS)
+        y = np.array([z[0] - self.x[0], z[1] - self.x[1], wrap(z[2] - self.x[2])])
+        res = gated_update(self.P, np.eye(3), y, r, self.config.pose.gate_probability)
+        if res.accepted:
+            self.P = res.P
+            self.x = self.x + res.dx
+        return res.accepted
 
     def _inflate(self, scale: float) -> None:
         """Divergence recovery: widen x, y and yaw by `scale` x the base steps."""

@@ -30,6 +30,7 @@ from uwbfuse.config import Config, GraphConfig
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
+from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import (
     LOG_OUTLIER,
     MIN_WEIGHT,
@@ -325,6 +326,7 @@ class GraphBuilder:
         self._rq: list[np.ndarray] = []  # the classifier's P(NLOS) of the pending ranges
         # the learned NLOS classifier's P(NLOS) per range (`use_range_priors`), or None
         self.priors: RangePriors | None = None
+        self.poses = PoseQueue(self.t0)  # external poses for the keyframes to come
         self.record = record
         self.records = RangeRecords()
         # roll, pitch (rad) and z (m) sigmas of the wheel factor
@@ -400,6 +402,11 @@ class GraphBuilder:
             self._ra.append(np.asarray(anchor, np.int64)[keep])
             self._rz.append(np.asarray(rng, np.float64)[keep])
             self._rq.append(q[keep])
+
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None:
+        """Queue external poses (base in map, ROS-order covariance) for the keyframes."""
+        self.poses.add(t_ns, position, quat_xyzw, covariance)
 
     def _take_ranges(
         self, t_end: int
@@ -654,6 +661,12 @@ class GraphBuilder:
             inc.graph.add(self._planar_prior(k, new_pose))
         inc.values.insert(X(k), new_pose)
         inc.stamps[X(k)] = self.stamp(k)
+        t_p, p_p, q_p, c_p = self.poses.take(t_b)
+        if len(t_p):  # each at its own time, through the motion since X(ka) (as ranges)
+            for f in pose_factors(X(ka), p_p, q_p, c_p, self.delta(t_a, t_p, pose_a, vel_a),
+                                  [self.motion_noise(t_a, int(t)) for t in t_p.tolist()],
+                                  self.planar, self.cfg.pose):
+                inc.graph.add(f)
         self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
         self._add_ranges(inc, ka, t_a, t_b, pose_a, vel_a)
         self._stamp_globals(inc, self.stamp(k))

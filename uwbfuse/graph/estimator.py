@@ -62,7 +62,7 @@ from uwbfuse.graph.uwb import (
 )
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.positioning.nlos_classifier import RangePriors
-from uwbfuse.positioning.sparse_start import SparseStartInitialiser
+from uwbfuse.positioning.pose_start import PoseStartInitialiser
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -95,7 +95,7 @@ class GraphEstimator:
         config: Config,
         anchors: AnchorMap,
         streams: frozenset[str],
-        initialiser: SparseStartInitialiser,
+        initialiser: PoseStartInitialiser,
     ) -> None:
         self.method = method
         self.cfg = config
@@ -168,6 +168,15 @@ class GraphEstimator:
         else:
             self.builder.add_ranges(t_ns, anchor, rng)
 
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None:
+        """External poses: stamps (N,) ns, base position (N,3) m and quaternion (N,4) xyzw
+        in the map frame, covariance (N,6,6) ROS order (`graph.pose_factor`)."""
+        if self.builder is None:
+            self.init.add_poses(t_ns, position, quat_xyzw, covariance)
+        else:
+            self.builder.add_poses(t_ns, position, quat_xyzw, covariance)
+
     # ------------------------------------------------------------------ processing
     def step(self, t_ns: int) -> None:
         """Process all data with stamps <= t_ns (see the module docstring)."""
@@ -235,6 +244,7 @@ class GraphEstimator:
         for t, a, r in self.init.pre_ranges:
             self.builder.add_ranges(t, a, r)
         self.init.pre_ranges.clear()
+        self.builder.add_poses(*self.init.pose_arrays())
         self.smoother = OnlineSmoother(self.cfg.graph.lag)
         self._pending.append(self.builder.first())
         self._flush()
@@ -770,6 +780,8 @@ class GraphEstimator:
         out["init_t_ns"] = self._init_t
         out["first_keyframe_t_ns"] = b.t0  # before init_t_ns when backdated
         out["fallback_start"] = self.init.fallback_used
+        out["pose_start"] = self.init.pose_start_used
+        out["poses_used"] = b.poses.used
         out["keyframes"] = b.k + 1
         lat = np.asarray(self._update_latency)
         if len(lat):
@@ -841,7 +853,8 @@ def make(
     """The graph estimator for `method` (isam2, isam2-smoothed or batch)."""
     if method not in (Method.ISAM2, Method.ISAM2_SMOOTHED, Method.BATCH):
         raise EstimatorError(f"uwbfuse.graph does not implement method {method.value}")
-    if "uwb" not in streams and {"imu", "wheel"} <= streams:
+    if "uwb" not in streams and ({"imu", "wheel"} <= streams or (
+            "pose" in streams and streams & {"imu", "wheel"})):
         # IMU + wheels without UWB: the graph starts at the map origin, heading zero, as
         # the filters and dead reckoning do, and fuses the two
         anchors = AnchorMap((), np.zeros((0, 3)))
@@ -849,6 +862,6 @@ def make(
         raise EstimatorError(f"method {method.value} needs UWB ranges and an anchor map")
     from uwbfuse.positioning.initialisation import Initialiser
 
-    init = SparseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
-                                  streams)
+    init = PoseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
+                                streams)
     return GraphEstimator(method, config, anchors, streams, init)

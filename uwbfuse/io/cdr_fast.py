@@ -14,8 +14,9 @@ are reported back so the caller can use the generic decoder. Encoding builds one
 uint8 matrix per group of messages sharing their frame ids.
 
 Supported types: sensor_msgs/msg/Imu, nav_msgs/msg/Odometry, sensor_msgs/msg/Range,
-geometry_msgs/msg/PoseStamped, geometry_msgs/msg/TransformStamped, the simulator's
-uwbfuse_msgs/msg/UwbRange (anchor_id, range, rssi, first_path_power) (ROS 2 Humble layouts,
+geometry_msgs/msg/PoseStamped, geometry_msgs/msg/PoseWithCovarianceStamped,
+geometry_msgs/msg/TransformStamped, the simulator's uwbfuse_msgs/msg/UwbRange (anchor_id,
+range, rssi, first_path_power) (ROS 2 Humble layouts,
 or any schema whose flattened layout starts with them, e.g. Range with `variance`).
 """
 
@@ -67,6 +68,9 @@ def _layout(type_name: str, l1: int, l2: int) -> tuple[int, int]:
     if type_name == msgdefs.POSE_STAMPED:
         start = _a8(p)
         return start, start + 7 * 8
+    if type_name == msgdefs.POSE_WITH_COVARIANCE_STAMPED:
+        start = _a8(p)
+        return start, start + 43 * 8
     if type_name == msgdefs.TRANSFORM_STAMPED:
         start = _a8(_a4(p) + 4 + l2)
         return start, start + 7 * 8
@@ -78,7 +82,7 @@ def _layout(type_name: str, l1: int, l2: int) -> tuple[int, int]:
 
 FAST_TYPES = frozenset(
     {msgdefs.IMU, msgdefs.ODOMETRY, msgdefs.RANGE, msgdefs.POSE_STAMPED,
-     msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE}
+     msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE, msgdefs.POSE_WITH_COVARIANCE_STAMPED}
 )
 _HAS_CHILD = frozenset({msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED, msgdefs.UWB_RANGE})
 
@@ -173,6 +177,19 @@ def encode_pose_stamped(
     fill = {k: position[:, k] for k in range(3)}
     fill.update({3 + k: quat_xyzw[:, k] for k in range(4)})
     return _encode_group(msgdefs.POSE_STAMPED, t_ns, frame_id, "", fill)
+
+
+def encode_pose_with_covariance_stamped(
+    t_ns: NDArray[np.int64], position: np.ndarray, quat_xyzw: np.ndarray,
+    covariance: np.ndarray, frame_id: str = "map",
+) -> list[bytes]:
+    """geometry_msgs/msg/PoseWithCovarianceStamped: position (m), orientation (x, y, z, w)
+    and the (N, 6, 6) covariance in ROS order (x, y, z, rot x, rot y, rot z)."""
+    fill = {k: position[:, k] for k in range(3)}
+    fill.update({3 + k: quat_xyzw[:, k] for k in range(4)})
+    cov = np.asarray(covariance, dtype=np.float64).reshape(len(t_ns), 36)
+    fill.update({7 + k: cov[:, k] for k in range(36)})
+    return _encode_group(msgdefs.POSE_WITH_COVARIANCE_STAMPED, t_ns, frame_id, "", fill)
 
 
 def encode_transform_stamped(
@@ -317,6 +334,9 @@ def _empty_columns(type_name: str, n: int) -> dict[str, np.ndarray]:
                     anchor_id=np.empty(n, dtype=object))
     elif type_name in (msgdefs.POSE_STAMPED, msgdefs.TRANSFORM_STAMPED):
         cols.update(position=np.zeros((n, 3)), quat=np.zeros((n, 4)))
+    elif type_name == msgdefs.POSE_WITH_COVARIANCE_STAMPED:
+        cols.update(position=np.zeros((n, 3)), quat=np.zeros((n, 4)),
+                    covariance=np.zeros((n, 6, 6)))
     else:
         raise KeyError(type_name)
     return cols
@@ -332,7 +352,8 @@ def decode_at(
     encapsulations, lengths that do not add up); columns hold n rows each (zeros where not
     ok): `t_ns` int64 header stamp and per type `gyro`/`accel` (Imu, (n,3)),
     `v`/`omega`/`position`/`quat` (Odometry), `range` float64 and `frame_id` str (Range),
-    `position`/`quat` (PoseStamped, TransformStamped).
+    `position`/`quat` (PoseStamped, TransformStamped; PoseWithCovarianceStamped also
+    `covariance` (n,6,6), ROS order).
     """
     n = len(offset)
     cols = _empty_columns(type_name, n)
@@ -356,7 +377,8 @@ def decode_at(
     else:
         start = _va8(p)
     size = {msgdefs.IMU: 37 * 8, msgdefs.ODOMETRY: 85 * 8, msgdefs.RANGE: 16,
-            msgdefs.UWB_RANGE: 12}.get(type_name, 56)
+            msgdefs.UWB_RANGE: 12,
+            msgdefs.POSE_WITH_COVARIANCE_STAMPED: 43 * 8}.get(type_name, 56)
     good &= (4 + start + size <= ln) & (l1 < ln)
     if type_name in _HAS_CHILD:
         l2, c = l2[good], c[good]
@@ -390,6 +412,11 @@ def decode_at(
             k = l2 == v2
             width = min(max(v2 - 1, 0), 4 * MAX_ANCHOR_ID_CHARS + 1)
             cols["anchor_id"][sel[k]] = _strings(_take(arr, o[k] + 4 + c[k] + 4, width))
+    elif type_name == msgdefs.POSE_WITH_COVARIANCE_STAMPED:
+        pose = _f8(arr, b, 43)
+        cols["position"][sel] = pose[:, 0:3]
+        cols["quat"][sel] = pose[:, 3:7]
+        cols["covariance"][sel] = pose[:, 7:43].reshape(-1, 6, 6)
     else:
         pose = _f8(arr, b, 7)
         cols["position"][sel] = pose[:, 0:3]

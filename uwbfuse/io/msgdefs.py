@@ -11,6 +11,7 @@ IMU = "sensor_msgs/msg/Imu"
 ODOMETRY = "nav_msgs/msg/Odometry"
 RANGE = "sensor_msgs/msg/Range"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 # the simulator's range type with signal quality (fields read through the [uwb] mapping:
@@ -52,6 +53,7 @@ _DEFS: dict[str, str] = {
         "std_msgs/Header header\nstring anchor_id\nfloat32 range\nfloat32 rssi\n"
         "float32 first_path_power"
     ),
+    POSE_WITH_COVARIANCE_STAMPED: "std_msgs/Header header\ngeometry_msgs/PoseWithCovariance pose",
     TRANSFORM_STAMPED: (
         "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform"
     ),
@@ -71,6 +73,9 @@ _DEPS: dict[str, tuple[str, ...]] = {
     RANGE: ("std_msgs/Header", "builtin_interfaces/Time"),
     POSE_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose",
                    "geometry_msgs/Point", "geometry_msgs/Quaternion"),
+    POSE_WITH_COVARIANCE_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time",
+                                   "geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose",
+                                   "geometry_msgs/Point", "geometry_msgs/Quaternion"),
     TRANSFORM_STAMPED: ("std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Transform",
                         "geometry_msgs/Vector3", "geometry_msgs/Quaternion"),
     JOINT_STATE: ("std_msgs/Header", "builtin_interfaces/Time"),

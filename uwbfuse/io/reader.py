@@ -55,8 +55,8 @@ from uwbfuse.streams import (
 
 log = logging.getLogger(__name__)
 
-IMU, WHEEL, UWB, GT = "imu", "wheel_odom", "uwb", "ground_truth"
-ROLES = (IMU, WHEEL, UWB, GT)
+IMU, WHEEL, UWB, GT, POSE = "imu", "wheel_odom", "uwb", "ground_truth", "pose"
+ROLES = (IMU, WHEEL, UWB, GT, POSE)
 
 # skip reasons counted in ReadReport.skipped
 SKIP_INVALID_FLAG = "range flagged invalid"
@@ -116,7 +116,8 @@ _ACCEPTED = {
     IMU: (msgdefs.IMU,),
     WHEEL: (msgdefs.ODOMETRY, msgdefs.JOINT_STATE),
     GT: (msgdefs.POSE_STAMPED, msgdefs.ODOMETRY, msgdefs.TRANSFORM_STAMPED,
-         "geometry_msgs/msg/PoseWithCovarianceStamped"),
+         msgdefs.POSE_WITH_COVARIANCE_STAMPED),
+    POSE: (msgdefs.POSE_WITH_COVARIANCE_STAMPED, msgdefs.POSE_STAMPED),
 }
 
 
@@ -279,6 +280,9 @@ def _extract_generic(
     topic = sink.channel.topic
     stamps = np.array([stamp_ns(m) for m in msgs], dtype=np.int64)
     try:
+        if role == POSE:
+            _external_poses(msgs, stamps, log_time, cols, topic, report)
+            return
         if kind == "joint_state":
             _joint_states(msgs, stamps, log_time, cols, config, report)
             return
@@ -318,6 +322,28 @@ def _extract_generic(
                      valid=np.ones(len(rows), bool), rssi=nan, first_path=nan)
     except MissingField as e:
         raise _FieldError(str(e.args[0])) from None
+
+
+def _external_poses(
+    msgs: list[Any], stamps: np.ndarray, log_time: np.ndarray, cols: _Columns, topic: str,
+    report: ReadReport,
+) -> None:
+    """Pose, orientation and (PoseWithCovarianceStamped) covariance of the pose role."""
+    with_cov = has_path(msgs[0], "pose.covariance")
+    base = "pose.pose" if with_cov else "pose"
+
+    def row(m: Any) -> tuple[float, ...]:
+        cov = ([float(c) for c in get_path(m, "pose.covariance")] if with_cov
+               else [0.0] * 36)
+        if len(cov) != 36:
+            raise ValueError("covariance is not 36 numbers")
+        return (*_vec(m, f"{base}.position"), *_vec(m, f"{base}.orientation", "xyzw"), *cov)
+
+    k, rows = _per_message(msgs, row, topic, report)
+    v = _floats(rows, 43)
+    cols.add(stamps[k], log_time[k], position=v[:, :3], quat=v[:, 3:7],
+             covariance=v[:, 7:].reshape(-1, 6, 6),
+             has_cov=np.full(len(k), with_cov, dtype=bool))
 
 
 def _joint_states(
@@ -430,6 +456,11 @@ def _fast_columns(sink: _ChannelSink, role: str, cols: _Columns) -> None:
             cols.add(c["t_ns"], lt, anchor=c["anchor_id"], range=c["range"],
                      valid=np.ones(len(lt), dtype=bool), rssi=c["rssi"],
                      first_path=c["first_path"])
+        elif role == POSE:
+            cov = c.get("covariance")
+            cols.add(c["t_ns"], lt, position=c["position"], quat=c["quat"],
+                     covariance=np.zeros((len(lt), 6, 6)) if cov is None else cov,
+                     has_cov=np.full(len(lt), cov is not None, dtype=bool))
         else:
             nan = np.full(len(lt), np.nan)
             cols.add(c["t_ns"], lt, anchor=c["frame_id"], range=c["range"],
@@ -632,6 +663,19 @@ def _gt_stream(r: _Role, topic: str, report: ReadReport) -> PoseStream | None:
                       has_orientation=has_orientation)
 
 
+def _pose_stream(r: _Role, topic: str, config: Config, report: ReadReport) -> PoseStream | None:
+    if not r.present:
+        return None
+    from uwbfuse.io.pose_input import external_poses
+
+    c = r.columns
+    t = _stamps(c, "pose", topic, report)
+    t, p, q, cov, has = _clean(
+        t, [c.cat("position", (3,)), c.cat("quat", (4,)), c.cat("covariance", (6, 6)),
+            c.cat("has_cov", dtype=bool)], "pose", report, [MAX_COORD_M, None, None, None])
+    return external_poses(t, p, q, cov, has, config, report)
+
+
 def _range_stream(
     r: _Role, topic: str, anchors: AnchorMap | None, config: Config, report: ReadReport
 ) -> RangeStream | None:
@@ -831,7 +875,7 @@ def _far_stamps(streams: list[Any], report: ReadReport) -> list[Any]:
 
 def _role_topics(config: Config) -> dict[str, list[str]]:
     topics = {IMU: config.topics.imu, WHEEL: config.topics.wheel_odom, UWB: config.topics.uwb,
-              GT: config.topics.ground_truth}
+              GT: config.topics.ground_truth, POSE: config.topics.pose}
     out: dict[str, list[str]] = {}
     for role, topic in topics.items():
         if topic:
@@ -885,10 +929,11 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
     anchors = (AnchorMap.from_dict(dict(config.anchors)) if config.anchors
                else _metadata_anchors(source, scans))
     topics = config.topics
-    imu, wheel, ranges = _far_stamps([
+    imu, wheel, ranges, poses = _far_stamps([
         _imu_stream(roles[IMU], topics.imu, report),
         _wheel_stream(roles[WHEEL], topics.wheel_odom, report),
         _range_stream(roles[UWB], topics.uwb, anchors, config, report),
+        _pose_stream(roles[POSE], topics.pose, config, report),
     ], report)
     out = SensorLog(
         imu=imu,
@@ -899,6 +944,7 @@ def read_log(path: str | Path, config: Config) -> SensorLog:
         source=source,
         report=report,
         map=_log_map(source, scans, config),
+        pose=poses,
     )
     for line in report.lines():
         log.debug("%s: %s", source, line)

@@ -5,7 +5,9 @@ Topics and types (CONTRACT.md): /imu `sensor_msgs/msg/Imu` (frame imu_link), /wh
 `nav_msgs/msg/Odometry` (odom -> base_link, twist.linear.x = v, twist.angular.z = omega),
 /uwb/range `sensor_msgs/msg/Range` (header.frame_id = anchor id; `uwbfuse_msgs/msg/UwbRange`
 with a `uwb_fields` metadata record when the ranges carry signal quality), /ground_truth
-`geometry_msgs/msg/PoseStamped` (frame map). Every message's log time is its header stamp.
+`geometry_msgs/msg/PoseStamped` (frame map), and where the log has external poses
+/localization/pose `geometry_msgs/msg/PoseWithCovarianceStamped` (frame map).
+Every message's log time is its header stamp.
 
 Messages are encoded by the vectorised encoders of `cdr_fast` (byte-identical to
 `mcap_ros2.writer`, checked in the tests) and written in stamp order by the vectorised
@@ -86,6 +88,12 @@ def _encode_streams(
         else:
             out.append((topics.uwb, msgdefs.RANGE, r.t_ns,
                         cdr_fast.encode_range(r.t_ns, log.anchors.ids, r.anchor, r.range)))
+    if log.pose is not None and len(log.pose):
+        ps = log.pose
+        cov = ps.covariance if ps.covariance is not None else np.zeros((len(ps), 6, 6))
+        out.append((topics.pose, msgdefs.POSE_WITH_COVARIANCE_STAMPED, ps.t_ns,
+                    cdr_fast.encode_pose_with_covariance_stamped(
+                        ps.t_ns, ps.position, ps.quat_xyzw, cov)))
     if log.ground_truth is not None and len(log.ground_truth):
         g = log.ground_truth
         out.append((topics.ground_truth, msgdefs.POSE_STAMPED, g.t_ns,

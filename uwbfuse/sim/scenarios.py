@@ -13,6 +13,10 @@ radians.
 | factory        | 10 x 10  | 3 (INS-UWB), 2.5    | 26 m loop, 0.5 m/s | 0.026 / .114,.145 | 30 % |
 | warehouse      | 40 x 20  | 4, Qiu Table 4, 1.5 | 165 m serpentine   | 0.05 / .114,.145  | 55 % |
 | warehouse-nlos | 40 x 20  | as warehouse        | 80 m racetrack     | 0.05 / 0.3,0.15   | 71 % |
+| warehouse-lidar| 40 x 20  | as warehouse        | as warehouse       | as warehouse      | 55 % |
+
+warehouse-lidar adds a LiDAR localiser's poses (`sim.lidar`: 10 Hz, 3 cm, 0.6 deg, none in
+two featureless aisle stretches, wrong matches of 0.5-2 m).
 
 (LOS: noise std; NLOS: mean, std of the excess range; NLOS: measured share of ranges.)
 
@@ -108,6 +112,17 @@ class Scenario:
     anchor_offset_max: float = 0.0  # constant per-anchor offset, uniform +-, m
     # write RX and first-path power with each range (`sim.signal`; a custom range type)
     signal_quality: bool = False
+
+    # LiDAR localisation poses (`sim.lidar`; in the log when "pose" is in `streams`)
+    pose_rate: float = 10.0  # Hz
+    pose_sigma_xy: float = 0.03  # position noise std per axis, m
+    pose_sigma_yaw: float = 0.01  # heading noise std, rad (0.6 deg)
+    pose_corr: float = 0.7  # share of the pose noise variance that is slow (AR(1))
+    pose_tau_s: float = 3.0  # correlation time of the slow part, s
+    pose_dropouts: tuple[Box, ...] = ()  # no pose inside (featureless aisles)
+    pose_wrong_rate: float = 1.0 / 30.0  # wrong matches per second
+    pose_wrong_jump: tuple[float, float] = (0.5, 2.0)  # their offset, uniform, m
+    pose_wrong_duration: tuple[float, float] = (0.5, 2.0)  # their length, uniform, s
 
     def anchor_dict(self) -> dict[str, Vec3]:
         return dict(self.anchors)
@@ -309,8 +324,18 @@ WAREHOUSE_NLOS = replace(
     nlos_dropout_prob=0.05,
 )
 
+WAREHOUSE_LIDAR = replace(
+    WAREHOUSE,
+    name="warehouse-lidar",
+    description="the warehouse with a LiDAR localiser (UKF paper): poses at 10 Hz, 3 cm / "
+    "0.6 deg noise, none in the middle 18 m of the first and third aisles (featureless), "
+    "a wrong match of 0.5-2 m for 0.5-2 s every 30 s on average",
+    streams=("imu", "wheel", "uwb", "pose"),
+    pose_dropouts=(Box(12.0, 1.0, 30.0, 4.0), Box(11.0, 11.0, 29.0, 14.0)),
+)
+
 SCENARIOS: dict[str, Scenario] = {
-    s.name: s for s in (ROOM, ROOM_STATIC, FACTORY, WAREHOUSE, WAREHOUSE_NLOS)
+    s.name: s for s in (ROOM, ROOM_STATIC, FACTORY, WAREHOUSE, WAREHOUSE_NLOS, WAREHOUSE_LIDAR)
 }
 
 

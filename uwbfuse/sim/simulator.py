@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from uwbfuse.config import MapConfig
 from uwbfuse.errors import SimulationError
+from uwbfuse.sim.lidar import lidar_poses
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
 from uwbfuse.sim.sensors import imu_samples, uwb_ranges, wheel_samples
 from uwbfuse.sim.signal import signal_powers
@@ -89,6 +90,7 @@ class SimResult:
     timeline: Timeline
     rx_dbm: F64 | None = None
     fp_dbm: F64 | None = None
+    pose_wrong: B | None = None  # per `log.pose` row: a wrong match (None: no poses)
 
     @property
     def nlos_fraction(self) -> float:
@@ -106,9 +108,12 @@ def _validate(sc: Scenario, duration_s: float) -> None:
         raise SimulationError("still_start_s must be >= 0")
     if len(sc.anchors) < 1:
         raise SimulationError("a scenario needs at least one anchor")
-    bad = set(sc.streams) - {"imu", "wheel", "uwb"}
+    bad = set(sc.streams) - {"imu", "wheel", "uwb", "pose"}
     if bad or not sc.streams:
-        raise SimulationError(f"streams must be a non-empty subset of imu, wheel, uwb: {bad}")
+        raise SimulationError(
+            f"streams must be a non-empty subset of imu, wheel, uwb, pose: {bad}")
+    if "pose" in sc.streams and not sc.pose_rate > 0:
+        raise SimulationError(f"pose_rate must be positive, got {sc.pose_rate}")
 
 
 def site_map(sc: Scenario) -> MapConfig:
@@ -179,6 +184,13 @@ def simulate_with_truth(
     power_rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(POWER_STREAM,)))
     rx_dbm, fp_dbm = signal_powers(rs.true_range, rs.nlos, rs.nlos_excess, power_rng)
 
+    # LiDAR localisation (own generators: the other sensors' draws do not change)
+    lidar = None
+    if "pose" in sc.streams:
+        pose_rng, wrong_rng = (np.random.default_rng(s)
+                               for s in np.random.SeedSequence(seed).spawn(5)[3:])
+        lidar = lidar_poses(sc, tl, duration_s, pose_rng, wrong_rng)
+
     anchors = AnchorMap.from_dict(sc.anchor_dict())
     sensor_log = SensorLog(
         imu=ImuStream(t_imu_ns, imu.gyro, imu.accel) if "imu" in sc.streams else None,
@@ -191,6 +203,9 @@ def simulate_with_truth(
         ground_truth=PoseStream(t_imu_ns, pos, quat, True),
         source=f"simulated:{sc.name}:seed={seed}",
         map=site_map(sc),
+        pose=None if lidar is None else PoseStream(
+            _to_ns(sc.t0_ns, lidar.t_s), lidar.position, lidar.quat_xyzw, True,
+            lidar.covariance),
     )
     stills = _still_intervals(tl, duration_s)
     stills_ns = tuple((int(_to_ns(sc.t0_ns, np.array([a]))[0]),
@@ -225,6 +240,7 @@ def simulate_with_truth(
         timeline=tl,
         rx_dbm=rx_dbm,
         fp_dbm=fp_dbm,
+        pose_wrong=None if lidar is None else lidar.wrong,
     )
 
 
