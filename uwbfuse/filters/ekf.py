@@ -327,7 +327,7 @@ class ErrorStateEkf(StreamingFilter):
         rows = PLANAR_ROWS if self.planar else SPATIAL_ROWS
         z, r = pose_measurement(position, quat_xyzw, covariance, rows)
         n = len(z)
-        h = np.zeros((n, N_ERR))
+        h = np.zeros((n, self.n_x))  # zero on the range-bias states
         h[np.arange(n - 1), np.arange(n - 1)] = 1.0  # position rows on dp
         h[n - 1, 8] = 1.0  # yaw on dtheta_z (R = exp(dtheta) R: map axes)
         yaw = math.atan2(self.R[1, 0], self.R[0, 0])
@@ -335,7 +335,9 @@ class ErrorStateEkf(StreamingFilter):
         res = gated_update(self.P, h, y, r, self.config.pose.gate_probability)
         if res.accepted:
             self.P = res.P
-            self._inject(res.dx)
+            self._inject(res.dx[:N_ERR])
+            if self.n_bias:  # the poses' correlation with the ranges moves the biases too
+                self.rbias = self.rbias + res.dx[N_ERR:]
         return res.accepted
 
     def _inject(self, dx: F64) -> None:
@@ -483,10 +485,13 @@ class UnicycleEkf(StreamingFilter):
         """External pose at t_cur (`filters.pose_update`): x, y, yaw on the state."""
         z, r = pose_measurement(position, quat_xyzw, covariance, PLANAR_ROWS)
         y = np.array([z[0] - self.x[0], z[1] - self.x[1], wrap(z[2] - self.x[2])])
-        res = gated_update(self.P, np.eye(3), y, r, self.config.pose.gate_probability)
+        h = pad_rows(np.eye(3), 3 + self.n_bias)  # zero on the range-bias states
+        res = gated_update(self.P, h, y, r, self.config.pose.gate_probability)
         if res.accepted:
             self.P = res.P
-            self.x = self.x + res.dx
+            self.x = self.x + res.dx[:3]
+            if self.n_bias:
+                self.rbias = self.rbias + res.dx[3:]
         return res.accepted
 
     def _inflate(self, scale: float) -> None:
