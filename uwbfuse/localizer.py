@@ -50,6 +50,7 @@ from uwbfuse.io.reader import (
     SKIP_UNKNOWN_ANCHOR,
     skip_duplicate,
     skip_non_finite,
+    stamp_value_order,
 )
 from uwbfuse.methods import Method, make_estimator
 from uwbfuse.streams import NS_PER_S, AnchorMap
@@ -142,13 +143,7 @@ def _sorted_unique(cols: tuple[np.ndarray, ...], role: str,
     t = cols[0]
     if len(t) < 2 or bool(np.all(t[1:] > t[:-1])):
         return cols
-    flat = [c.reshape(len(t), -1) for c in cols[1:]]
-    keys = [c[:, j] for c in reversed(flat) for j in reversed(range(c.shape[1]))]
-    order = np.lexsort([*keys, t])
-    same = t[order][1:] == t[order][:-1]
-    for c in flat:
-        same &= np.all(c[order][1:] == c[order][:-1], axis=1)
-    dup = np.concatenate([[False], same])
+    order, dup = stamp_value_order(t, list(cols[1:]))
     if dup.any():
         skipped[skip_duplicate(role)] += int(dup.sum())
     kept = order[~dup]

@@ -552,6 +552,19 @@ def _stamps(cols: _Columns, role: str, topic: str, report: ReadReport) -> np.nda
     return t
 
 
+def stamp_value_order(t: np.ndarray, values: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Indices that sort rows by stamp `t` (N,), ties by the `values` columns (each (N,...)),
+    and the mask, in that order, of rows that repeat the previous row exactly (stamp and
+    every value): the reader's and the live API's duplicate rule."""
+    flat = [v.reshape(len(t), -1) for v in values]
+    keys = [c[:, j] for c in reversed(flat) for j in reversed(range(c.shape[1]))]
+    order = np.lexsort([*keys, t])
+    same = t[order][1:] == t[order][:-1]
+    for c in flat:
+        same &= np.all(c[order][1:] == c[order][:-1], axis=1)
+    return order, np.concatenate([[False], same])
+
+
 def _sort_dedup(
     t: np.ndarray, values: list[np.ndarray], role: str, report: ReadReport
 ) -> np.ndarray | None:
@@ -565,13 +578,7 @@ def _sort_dedup(
     ts = t[order]
     if bool(np.all(ts[1:] > ts[:-1])):
         return order
-    flat = [v.reshape(len(t), -1) for v in values]
-    keys = [c[:, j] for c in reversed(flat) for j in reversed(range(c.shape[1]))]
-    order = np.lexsort([*keys, t])
-    same = t[order][1:] == t[order][:-1]
-    for c in flat:
-        same &= np.all(c[order][1:] == c[order][:-1], axis=1)
-    dup = np.concatenate([[False], same])
+    order, dup = stamp_value_order(t, values)
     report.skip(skip_duplicate(role), int(dup.sum()))
     kept = order[~dup]
     ties = int(np.sum(t[kept][1:] == t[kept][:-1]))
