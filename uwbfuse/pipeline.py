@@ -184,7 +184,7 @@ def estimate(
     is told the seconds of log processed (see `run_streaming`); `covariance`: the poses'
     covariances are wanted (`graph.marginal_covariances = "auto"` computes them then).
 
-    `batch` whose held-out choice picked a robust range model is fitted once more over the
+    `batch` whose held-out choice picked a robust range model runs once more over the
     whole log (`whole_log_refit`)."""
     first = _estimate_once(log, method, config, progress, covariance)
     refit = whole_log_refit(method, config, first.report, log)
@@ -192,7 +192,7 @@ def estimate(
         return first
     second = _estimate_once(log, method, refit, None, covariance)
     second.report["whole_log_refit"] = {
-        "range_model": refit.graph.range_model,
+        "first_pass_range_model": first.report["batch"]["range_model"],
         "start_backdate_s": refit.graph.start_backdate,
         "first_pass_wall_s": first.estimate_wall_s,
     }
@@ -207,9 +207,11 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     The graph starts where the start state is found (the heading needs some motion), and
     the ranges and odometry before it stay out. Carried back along the wheel track
     (`graph.start_backdate`), they help wherever their ranges are not classified against
-    that still-poor early track: so where batch fits a robust range model (no LOS/NLOS
-    assignment), not the mixture (docs/results.md, "Backdated starts"). Only where the user
-    left both `graph.range_model` and `graph.start_backdate` at their defaults, on
+    that still-poor early track: so where batch's held-out choice found a robust range
+    model (no LOS/NLOS assignment) better, not the mixture (docs/results.md, "Backdated
+    starts"). The second pass chooses its range model again, over the whole log (a long
+    still stretch before the start can favour the mixture: room-static). Only where the
+    user left both `graph.range_model` and `graph.start_backdate` at their defaults, on
     wheeled logs, and where the first pass's graph started after the first data.
     """
     g = config.graph
@@ -227,7 +229,7 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     # one keyframe period past the first data: the backdated start is clamped to it
     back_s += 1.0 / g.keyframe_rate
     return config.model_copy(update={"graph": g.model_copy(
-        update={"range_model": chosen, "start_backdate": back_s})})
+        update={"start_backdate": back_s})})
 
 
 def _estimate_once(
