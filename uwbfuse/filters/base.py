@@ -196,8 +196,7 @@ class StreamingFilter:
         self.range_noise = RangeNoise(config, len(anchors))
         # per-anchor range-bias states (filters with RANGE_BIAS; see `bias_decay`) only
         # where the tag height is held (planar vehicle, or the wheel-driven filter): a tag
-        # free in 3-D trades its height for common range biases (ISAS-Walk1, UWB + IMU:
-        # 2-D ATE 0.161 -> 0.164 m with them)
+        # free in 3-D trades its height for a common range bias (docs/results.md)
         self.planar = self.has_wheel and config.graph.planar != "off"
         held = self.planar or not self.has_imu
         # and one common range-scale error state (ranges read (1 + ds) x the distance after
@@ -355,8 +354,8 @@ class StreamingFilter:
                 # Only a pose that refers to this epoch (an older heading candidate would
                 # be written at a stale stamp) and carries a heading candidate: without one
                 # its position is the median of plain multilateration fixes, and the
-                # pipeline's NLOS-weighted WLS fallback is the better pose (room-static,
-                # 20 s standstills: 2-D ATE 0.113 -> 0.066 m on seed 0, docs/results.md).
+                # pipeline's NLOS-weighted WLS fallback is the better pose (measured in
+                # docs/results.md).
                 self._provisional = (
                     p if p is not None and int(p.t_ns) == int(t_ns)
                     and p.yaw_sigma < math.pi else None)
