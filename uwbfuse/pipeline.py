@@ -186,11 +186,13 @@ def estimate(
 
     `batch` whose held-out choice picked a robust range model runs once more over the
     whole log (`whole_log_refit`)."""
-    first = _estimate_once(log, method, config, progress, covariance)
+    # the classifier's priors once for both passes (they differ only in [graph])
+    priors = _classifier_priors(log, config, check_inputs(log, method, config))
+    first = _estimate_once(log, method, config, progress, covariance, priors)
     refit = whole_log_refit(method, config, first.report, log)
     if refit is None:
         return first
-    second = _estimate_once(log, method, refit, None, covariance)
+    second = _estimate_once(log, method, refit, None, covariance, priors)
     second.report["whole_log_refit"] = {
         "first_pass_range_model": first.report["batch"]["range_model"],
         "start_backdate_s": refit.graph.start_backdate,
@@ -220,7 +222,8 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     first_kf = report.get("first_keyframe_t_ns")
     if (method is not Method.BATCH or g.range_model != "auto"
             or g.start_backdate != fields["start_backdate"].default
-            or not chosen.startswith("robust") or log.wheel is None or first_kf is None):
+            or not chosen.startswith("robust") or log.wheel is None or not len(log.wheel)
+            or first_kf is None):
         return None
     t0, _ = log.time_span_ns()
     back_s = (int(first_kf) - t0) / NS_PER_S
@@ -234,9 +237,10 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
 
 def _estimate_once(
     log: SensorLog, method: Method, config: Config, progress: ProgressFn | None,
-    covariance: bool,
+    covariance: bool, priors: Callable[[object], None],
 ) -> RunResult:
-    """One run of `method` over the log (see `estimate`)."""
+    """One run of `method` over the log (see `estimate`); `priors` hands an estimator the
+    NLOS classifier's priors (`_classifier_priors`)."""
     config = with_covariance(config, covariance)
     streams = check_inputs(log, method, config)
     sensors_only = SensorLog(
@@ -245,7 +249,6 @@ def _estimate_once(
         pose=log.pose if "pose" in streams else None,
     )
     estimator = make_estimator(method, config, log.anchors, streams)
-    priors = _classifier_priors(log, config, streams)
     priors(estimator)
     if method is not Method.WLS and "uwb" in streams and log.anchors is not None:
         # Poses from the first motion on (contract): UWB-only fixes until the method has
