@@ -155,15 +155,16 @@ def run_one(log_path: str, method: str) -> dict:
 def estimate_keeping(log: Any, method: Any, cfg: Any) -> tuple[Any, Any]:
     """`pipeline.estimate(log, method, cfg, covariance=False)` step by step, keeping the
     graph estimator (for `batch_inputs`); the same trajectory and timing, without the
-    splice of the causal head (negligible)."""
-    from uwbfuse.estimator import WithFallback, output_epochs, run_streaming
-    from uwbfuse.methods import Method, make_estimator
+    head `PreStart.complete` adds before the first keyframe (negligible)."""
+    from uwbfuse.estimator import output_epochs, run_streaming
+    from uwbfuse.methods import make_estimator
     from uwbfuse.pipeline import check_inputs, with_covariance
+    from uwbfuse.prestart import PreStart
 
     cfg = with_covariance(cfg, False)
     streams = check_inputs(log, method, cfg)
     primary = make_estimator(method, cfg, log.anchors, streams)
-    est = WithFallback(primary, make_estimator(Method.WLS, cfg, log.anchors, streams))
+    est = PreStart.around(primary, method, cfg, log.anchors, streams)
     res = run_streaming(est, log, output_epochs(log, cfg.output.rate))
     t0, t1 = log.time_span_ns()
     res.log_duration_s = (t1 - t0) / 1e9

@@ -101,14 +101,14 @@ class _Scripted:
 def test_fallback_after_provisional_answers(
     fallback_xy: tuple[float, float], first_fallback_epoch: int
 ) -> None:
-    """test WithFallback: provisional answers keep the fallback; in place of a fallback
+    """test PreStart: provisional answers keep the fallback; in place of a fallback
     that disagreed with them the last provisional pose is held for PROVISIONAL_GRACE_S;
     every epoch has a pose"""
-    from uwbfuse.estimator import WithFallback
+    from uwbfuse.prestart import PreStart
 
     primary = _Scripted({k: (0.0, 0.0) for k in range(10)}, provisional_until=9)
     fallback = _Scripted({k: fallback_xy for k in range(200)})
-    wf = WithFallback(primary, fallback)
+    wf = PreStart(primary, fallback)
     answered = []
     for k in range(200):
         wf.step(k * 100_000_000)  # 10 Hz
@@ -121,14 +121,14 @@ def test_fallback_after_provisional_answers(
 
 
 def test_provisional_pose_is_held_while_the_fallback_has_no_fix() -> None:
-    """test WithFallback: a fallback without fixes (Plaza1) leaves the last provisional
+    """test PreStart: a fallback without fixes (Plaza1) leaves the last provisional
     pose held until the primary starts, so no epoch after the first motion lacks a pose"""
-    from uwbfuse.estimator import WithFallback
+    from uwbfuse.prestart import PreStart
 
     script: dict[int, tuple[float, float] | None] = {k: (1.0, 2.0) for k in range(10)}
     script.update({k: (5.0, 5.0) for k in range(150, 200)})  # the primary starts at 150
     primary = _Scripted(script, provisional_until=9)
-    wf = WithFallback(primary, _Scripted({}))
+    wf = PreStart(primary, _Scripted({}))
     got = []
     for k in range(200):
         wf.step(k * 100_000_000)

@@ -65,12 +65,6 @@ class RangeClasses:
         return ~self.nlos & (self.weight < 0.999)
 
 
-def range_classes_of(estimator: object) -> RangeClasses | None:
-    """`estimator.range_classes()` where it has one, else None."""
-    get = getattr(estimator, "range_classes", None)
-    return get() if callable(get) else None
-
-
 class Estimator(Protocol):
     """Streaming estimator (graph or filter). Batches arrive time-sorted per stream."""
 
@@ -101,128 +95,40 @@ class Estimator(Protocol):
     def report(self) -> dict[str, Any]:
         """Estimator-specific results for the run summary (outliers, biases, events)."""
 
+    @property
+    def provisional(self) -> bool:
+        """`estimate()` is a stand-in from before the method's own start (a standstill
+        fix), not its started estimate (`prestart.PreStart` decides what to do with it)."""
 
-class WithFallback:
-    """`primary`, with `fallback`'s pose at the epochs before `primary` has one.
+    def pre_start(self, t_ns: np.ndarray) -> PoseStream | None:
+        """After `finish()`: the final trajectory's poses at epochs `t_ns` (int64 ns, before
+        its first pose) carried back along the method's own relative motion; a suffix of
+        `t_ns`, or None where the method has none (`prestart.PreStart.complete`)."""
 
-    Causal estimators need a few seconds of motion to fix their heading; the contract
-    wants poses from the first motion on. The fallback (UWB-only WLS for ranging methods)
-    gives those epochs a provisional pose; it is fed until the primary has answered
-    `DROP_AFTER_EPOCHS` epochs in a row.
+    def range_classes(self) -> RangeClasses | None:
+        """The per-range LOS/NLOS classification, or None without one."""
 
-    A primary may answer provisionally before its start (its `provisional` attribute is
-    true: the graph's standstill fix). Such answers win over the fallback but do not count
-    towards dropping it, and the fallback keeps running beside them. When the primary falls
-    silent after them (the vehicle moved before the primary could start), the fallback
-    answers again at once if its last fix agreed with the provisional one within
-    `DISAGREE_M`. If not, its fixes are biased (Plaza2: WLS ~9 m off while the standstill
-    fix, which fits a common range scale, is 0.2 m off): the last provisional position is
-    held instead (its error is at most the distance moved since) for up to
-    `PROVISIONAL_GRACE_S`, long enough for the primary to start (it needs a couple of
-    metres of motion), and the fallback answers after that. While the fallback has no fix
-    at all (Plaza1: one range every half second, no WLS fix) the position is held until
-    the primary starts. Every epoch from the first motion on has a pose (contract).
-    `finish()` and `report()` are the primary's (the report counts the fallback epochs).
-    """
+    def forget_before(self, t_ns: int) -> None:
+        """Live use: drop what only offline outputs keep of the time before `t_ns`."""
 
-    DROP_AFTER_EPOCHS = 20
-    """The fallback is dropped once the primary has answered this many epochs in a row."""
-    DISAGREE_M = 1.0
-    """Horizontal distance between the fallback's and a provisional fix that discredits
-    the fallback, m."""
-    PROVISIONAL_GRACE_S = 5.0
-    """Longest hold of the last provisional position in place of a discredited fallback, s."""
 
-    def __init__(self, primary: Estimator, fallback: Estimator) -> None:
-        self.primary = primary
-        self.fallback: Estimator | None = fallback
-        self.fallback_epochs = 0
-        self._current: PoseEstimate | None = None
-        self._primary_streak = 0
-        self._discredited = False
-        self._silent_since: int | None = None
-        self._last_provisional: PoseEstimate | None = None
-        self.held_epochs = 0
-        self._provisional = True
-
-    def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
-        self.primary.add_imu(t_ns, gyro, accel)
-        if self.fallback is not None:
-            self.fallback.add_imu(t_ns, gyro, accel)
-
-    def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
-        self.primary.add_wheel(t_ns, v, omega)
-        if self.fallback is not None:
-            self.fallback.add_wheel(t_ns, v, omega)
-
-    def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
-        self.primary.add_ranges(t_ns, anchor, rng)
-        if self.fallback is not None:
-            self.fallback.add_ranges(t_ns, anchor, rng)
+class EstimatorBase:
+    """The `Estimator` protocol's optional parts for estimators that have none of them:
+    no provisional answers, nothing to carry back before the start, no per-range
+    classification, nothing kept beyond a bounded window (so nothing to forget)."""
 
     @property
     def provisional(self) -> bool:
-        """`estimate()` is not the primary's own (started) estimate: the fallback's fix,
-        a held provisional pose or the primary's provisional one."""
-        return self._provisional
-    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
-                  covariance: np.ndarray) -> None:
-        self.primary.add_poses(t_ns, position, quat_xyzw, covariance)  # WLS uses none
+        return False
 
-    def step(self, t_ns: int) -> None:
-        self.primary.step(t_ns)
-        self._current = self.primary.estimate()
-        self._provisional = True
-        if self._current is not None:
-            self._silent_since = None
-            if getattr(self.primary, "provisional", False):
-                self._last_provisional = self._current
-                if self.fallback is not None:
-                    self.fallback.step(t_ns)
-                    fb = self.fallback.estimate()
-                    if fb is not None:
-                        gap = float(np.hypot(*(fb.position[:2] - self._current.position[:2])))
-                        self._discredited = gap > self.DISAGREE_M
-                return
-            self._provisional = False
-            self._primary_streak += 1
-            if self._primary_streak >= self.DROP_AFTER_EPOCHS:
-                self.fallback = None  # the primary is up for good: free the buffers
-            elif self.fallback is not None:
-                self.fallback.step(t_ns)  # keep it current in case the primary drops out
-            return
-        self._primary_streak = 0
-        if self._silent_since is None:
-            self._silent_since = t_ns
-        if self.fallback is not None:
-            self.fallback.step(t_ns)
-            fb = self.fallback.estimate()
-            last = self._last_provisional
-            if last is not None and (fb is None or (self._discredited and (
-                    t_ns - self._silent_since < self.PROVISIONAL_GRACE_S * NS_PER_S))):
-                # the held pose keeps the provisional fix's covariance (None: unknown)
-                self._current = PoseEstimate(t_ns, last.position, last.quat_xyzw,
-                                             last.covariance)
-                self.held_epochs += 1
-                return
-            self._current = fb
-            if self._current is not None:
-                self.fallback_epochs += 1
-
-    def estimate(self) -> PoseEstimate | None:
-        return self._current
-
-    def finish(self) -> PoseStream | None:
-        return self.primary.finish()
+    def pre_start(self, t_ns: np.ndarray) -> PoseStream | None:
+        return None
 
     def range_classes(self) -> RangeClasses | None:
-        return range_classes_of(self.primary)
+        return None
 
-    def report(self) -> dict[str, Any]:
-        out = dict(self.primary.report())
-        out["provisional_epochs"] = self.fallback_epochs
-        out["held_provisional_epochs"] = self.held_epochs
-        return out
+    def forget_before(self, t_ns: int) -> None:
+        return None
 
 
 @dataclass
@@ -348,4 +254,4 @@ def run_streaming(
     if progress is not None:
         progress(span_s + 1, span_s + 1, "")
     return StreamingResult(_poses_to_stream(poses), final, latency, wall, estimator.report(),
-                           range_classes_of(estimator))
+                           estimator.range_classes())

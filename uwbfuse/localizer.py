@@ -36,7 +36,6 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, UwbfuseError
-from uwbfuse.estimator import Estimator, WithFallback
 from uwbfuse.io.reader import (
     MAX_ACCEL_M_S2,
     MAX_GYRO_RAD_S,
@@ -53,6 +52,7 @@ from uwbfuse.io.reader import (
     stamp_value_order,
 )
 from uwbfuse.methods import Method, make_estimator
+from uwbfuse.prestart import PreStart
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -216,11 +216,9 @@ class Localizer:
         self.reorder_window_ns = round(reorder_window_s * NS_PER_S)
         self.history_ns = round(history_s * NS_PER_S)
         self.period_ns = max(round(NS_PER_S / self.config.output.rate), 1)
-        est: Estimator = make_estimator(self.method, self.config, amap, streams)
-        if self.method is not Method.WLS and "uwb" in streams and amap is not None:
-            # as `pipeline.estimate`: UWB-only fixes until the method has its own start
-            est = WithFallback(est, make_estimator(Method.WLS, self.config, amap, streams))
-        self._est = est
+        # as `pipeline.estimate`: `PreStart` answers until the method has its own start
+        self._est = PreStart.around(make_estimator(self.method, self.config, amap, streams),
+                                    self.method, self.config, amap, streams)
         self._index = {} if amap is None else {a: i for i, a in enumerate(amap.ids)}
         u = self.config.uwb
         self._offset = (None if amap is None or not u.range_offset else
@@ -380,9 +378,7 @@ class Localizer:
             # flat memory: the estimator drops what only offline outputs and the report's
             # totals need, from before twice its lag
             self._forget_at = self._done_t + round(FORGET_EVERY_S * NS_PER_S)
-            forget = getattr(getattr(self._est, "primary", self._est), "forget_before", None)
-            if forget is not None:
-                forget(self._done_t - round(2 * self.config.graph.lag * NS_PER_S))
+            self._est.forget_before(self._done_t - round(2 * self.config.graph.lag * NS_PER_S))
 
     def _record(self, t_k: int) -> None:
         est = self._est.estimate()
@@ -390,7 +386,7 @@ class Localizer:
             return
         if est.t_ns != t_k:
             raise RuntimeError(f"estimate stamped {est.t_ns} ns at epoch {t_k} ns")
-        prov = bool(getattr(self._est, "provisional", False))
+        prov = self._est.provisional
         pose = Pose(t_k, np.asarray(est.position, np.float64),
                     np.asarray(est.quat_xyzw, np.float64),
                     None if est.covariance is None else np.asarray(est.covariance), prov)

@@ -18,10 +18,11 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError, EstimatorError, TrajectoryFileError
-from uwbfuse.estimator import Method, RangeClasses, WithFallback, output_epochs, run_streaming
+from uwbfuse.estimator import Method, RangeClasses, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, WITHOUT_RANGES, make_estimator
+from uwbfuse.prestart import PreStart
 from uwbfuse.progress import ProgressFn
-from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, ReadReport, SensorLog
+from uwbfuse.streams import NS_PER_S, PoseStream, ReadReport, SensorLog
 
 log = logging.getLogger(__name__)
 
@@ -115,21 +116,6 @@ def _never_initialised(log: SensorLog, method: Method) -> str:
         return (f"{msg}: the {len(heard)} anchors heard ({ids}) lie on one line in x, y "
                 f"({off_line_rms:.2f} m RMS off it); a 2-D fix needs 3 anchors not on one line")
     return f"{msg}: {len(log.ranges)} ranges from {len(heard)} anchors ({ids})"
-
-
-def _splice_covariance(causal: PoseStream, head: np.ndarray,
-                       final: PoseStream) -> np.ndarray | None:
-    """Covariances of the causal head `causal[head]` then of `final` (ROS order, map
-    axes); the part without one gets `UNKNOWN_VARIANCE`, None when neither has any."""
-    if causal.covariance is None and final.covariance is None:
-        return None
-
-    def part(s: PoseStream, sel: np.ndarray | slice) -> np.ndarray:
-        if s.covariance is not None:
-            return s.covariance[sel]
-        return np.tile(np.eye(6) * UNKNOWN_VARIANCE, (len(s.t_ns[sel]), 1, 1))
-
-    return np.concatenate([part(causal, head), part(final, slice(None))])
 
 
 def with_covariance(config: Config, wanted: bool) -> Config:
@@ -248,14 +234,13 @@ def _estimate_once(
         source=log.source, report=log.report,
         pose=log.pose if "pose" in streams else None,
     )
-    estimator = make_estimator(method, config, log.anchors, streams)
-    priors(estimator)
-    if method is not Method.WLS and "uwb" in streams and log.anchors is not None:
-        # Poses from the first motion on (contract): UWB-only fixes until the method has
-        # its own start (heading needs some motion).
-        fallback = make_estimator(Method.WLS, config, log.anchors, streams - {"pose"})
-        priors(fallback)
-        estimator = WithFallback(estimator, fallback)
+    primary = make_estimator(method, config, log.anchors, streams)
+    # Poses from the first motion on (contract): `PreStart` answers until the method has
+    # its own start (heading needs some motion) and fills a smoother's head afterwards.
+    estimator = PreStart.around(primary, method, config, log.anchors, streams)
+    priors(primary)
+    if estimator.fallback is not None:
+        priors(estimator.fallback)
     epochs = output_epochs(sensors_only, config.output.rate)
     res = run_streaming(estimator, sensors_only, epochs, progress)
     smoothed = method.spec.smoothed
@@ -269,19 +254,9 @@ def _estimate_once(
             "(causal, UWB-fix) poses", log.source, method.value)
         res.report["final_trajectory"] = ("none: the graph never started; the output is "
                                           "the provisional causal poses")
-    traj = res.final if smoothed and res.final is not None else res.causal
-    if smoothed and len(traj) and len(res.causal):
-        # A smoother starts at its own initialisation; the epochs before it keep their
-        # causal (provisional) poses so the output covers the log from the first motion.
-        head = res.causal.t_ns < traj.t_ns[0]
-        if np.any(head):
-            traj = PoseStream(
-                np.concatenate([res.causal.t_ns[head], traj.t_ns]),
-                np.concatenate([res.causal.position[head], traj.position]),
-                np.concatenate([res.causal.quat_xyzw[head], traj.quat_xyzw]),
-                traj.has_orientation,
-                _splice_covariance(res.causal, head, traj),
-            )
+    traj = res.causal
+    if smoothed and res.final is not None:
+        traj = estimator.complete(res.final, res.causal, epochs)
     if len(traj) == 0:
         raise EstimatorError(_never_initialised(log, method))
     t0, t1 = log.time_span_ns()

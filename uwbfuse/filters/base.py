@@ -26,7 +26,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.adaptive_noise import RangeNoise
 from uwbfuse.filters.models import (
     F64,
@@ -68,9 +68,14 @@ class InitialiserLike(Protocol):
 
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None: ...
 
+    def add_poses(self, t_ns: np.ndarray, position: np.ndarray, quat_xyzw: np.ndarray,
+                  covariance: np.ndarray) -> None: ...
+
     def try_initialise(self, t_ns: int) -> InitialStateLike | None: ...
 
     def provisional(self, t_ns: int) -> InitialStateLike | None: ...
+
+    def standstill_fix(self, t_ns: int) -> tuple[np.ndarray, np.ndarray] | None: ...
 
 
 def default_initialiser(
@@ -116,7 +121,7 @@ MAX_WINDOW_NS = 100_000_000
 REPEAT_NS = 150_000_000
 
 
-class StreamingFilter:
+class StreamingFilter(EstimatorBase):
     """Base of the Kalman baselines: buffering, initialisation, event ordering, reports.
 
     Subclasses implement `_start`, `_window`, `_inflate` and `_pose`.
@@ -304,9 +309,7 @@ class StreamingFilter:
         in the map frame, covariance (N,6,6) ROS order; applied at their own stamps by the
         gated update of `filters.pose_update` (`_pose_update`)."""
         if self._init_pending:
-            add = getattr(self.initialiser, "add_poses", None)
-            if add is not None:
-                add(t_ns, position, quat_xyzw, covariance)
+            self.initialiser.add_poses(t_ns, position, quat_xyzw, covariance)
         self._poses.add(t_ns, position, quat_xyzw, covariance)
 
     def _pose_edges(self, t_ns: int) -> np.ndarray:
@@ -359,8 +362,8 @@ class StreamingFilter:
                 self._provisional = (
                     p if p is not None and int(p.t_ns) == int(t_ns)
                     and p.yaw_sigma < math.pi else None)
-                fix_of = getattr(self.initialiser, "standstill_fix", None)
-                fix = fix_of(int(t_ns)) if self._provisional is None and fix_of else None
+                fix = (self.initialiser.standstill_fix(int(t_ns))
+                       if self._provisional is None else None)
                 self._standstill = None if fix is None else PoseEstimate(int(t_ns), *fix)
                 return
             self._provisional = None
@@ -417,7 +420,7 @@ class StreamingFilter:
 
     @property
     def provisional(self) -> bool:
-        """`estimate()` is a standstill fix from before the start (see `WithFallback`)."""
+        """`estimate()` is a standstill fix from before the start (see `prestart.PreStart`)."""
         return self._init_pending and self._provisional is None and self._standstill is not None
 
     def estimate(self) -> PoseEstimate | None:

@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import Estimator, Method, PoseEstimate
+from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance, unicycle_transition
 from uwbfuse.streams import F64, NS_PER_S, AnchorMap, PoseStream
 
@@ -120,7 +120,7 @@ def level_rotation(f_base: F64) -> Rotation:
     return Rotation.from_euler("ZYX", [0.0, pitch, roll])
 
 
-class _Base:
+class _Base(EstimatorBase):
     """Shared no-op inputs and output bookkeeping."""
 
     def __init__(self) -> None:
@@ -459,7 +459,7 @@ def _matrix(position: F64, quat_xyzw: F64) -> F64:
     return T
 
 
-class AnchoredDeadReckoning:
+class AnchoredDeadReckoning(EstimatorBase):
     """Dead reckoning started at the pose the `Initialiser` finds from the sensors.
 
     Until the initialiser succeeds the output is None; at that epoch t_i the map pose is

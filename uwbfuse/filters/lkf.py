@@ -31,7 +31,7 @@ from scipy.stats import chi2
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
-from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance
 from uwbfuse.filters.wls import EpochFixer, TagFix, TrackHeading, yaw_quat
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -99,7 +99,7 @@ class ConstantVelocityKF:
         return self.x[1::2]
 
 
-class LkfEstimator:
+class LkfEstimator(EstimatorBase):
     """Streaming loosely coupled CV Kalman filter on WLS fixes (see module doc)."""
 
     def __init__(self, config: Config, anchors: AnchorMap, streams: frozenset[str]) -> None:

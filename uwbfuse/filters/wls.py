@@ -31,7 +31,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
-from uwbfuse.estimator import Method, PoseEstimate
+from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
@@ -312,7 +312,7 @@ class TrackHeading:
         return self.yaw
 
 
-class WlsEstimator:
+class WlsEstimator(EstimatorBase):
     """Streaming UWB-only WLS (see module doc); IMU and wheel batches are ignored."""
 
     def __init__(self, config: Config, anchors: AnchorMap, streams: frozenset[str]) -> None:

@@ -47,7 +47,7 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
-from uwbfuse.estimator import Estimator, Method, PoseEstimate, RangeClasses
+from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer
@@ -86,7 +86,7 @@ def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
     return np.array([q.x(), q.y(), q.z(), q.w()])
 
 
-class GraphEstimator:
+class GraphEstimator(EstimatorBase):
     """Factor-graph estimator (see the module docstring). Implements `Estimator`."""
 
     def __init__(
@@ -122,6 +122,8 @@ class GraphEstimator:
         self._update_latency: list[float] = []
         self._init_t: int | None = None
         self._batch: offline.BatchResult | None = None
+        # the first keyframe's final pose and covariance, for `pre_start` (set by `finish`)
+        self._first_kf: tuple[gtsam.Pose3, np.ndarray | None] | None = None
         self._reviews: deque[ReviewBatch] = deque()
         self._review_inc: Increment | None = None
         self._n_reviewed = 0
@@ -551,7 +553,7 @@ class GraphEstimator:
     # ------------------------------------------------------------------ output
     @property
     def provisional(self) -> bool:
-        """`estimate()` is a standstill fix from before the start (see `WithFallback`)."""
+        """`estimate()` is a standstill fix from before the start (see `prestart.PreStart`)."""
         return self.builder is None
 
     def estimate(self) -> PoseEstimate | None:
@@ -706,27 +708,28 @@ class GraphEstimator:
                     noise = covariance.to_map(pp.rotation().matrix(),
                                               b.motion_noise(b.time_of(n - 1), int(t[i])))
                     c[i] = covariance.carry(covs[-1], pos[-1], p[i], noise[None])[0]
-        return self._backfill(PoseStream(t, p, q, True, c), poses[0],
-                              None if covs is None else covs[0])
+        self._first_kf = (poses[0], None if covs is None else covs[0])
+        return PoseStream(t, p, q, True, c)
 
-    def _backfill(self, traj: PoseStream, first: gtsam.Pose3,
-                  first_cov: np.ndarray | None) -> PoseStream:
-        """Offline outputs only: poses before the start from the wheel track, backwards.
+    def pre_start(self, t_ns: np.ndarray) -> PoseStream | None:
+        """After `finish()` (isam2-smoothed, batch): poses at the epochs `t_ns` before the
+        first keyframe from the wheel track, backwards, or None (no wheels, or none of
+        `t_ns` inside the track).
 
         The start needs some motion, but the output should cover the log from the first
         motion; with wheels the relative track before the start is known, so the first
         keyframe's smoothed pose carries it back. (IMU-only logs keep their start.) Its
-        covariance `first_cov` (ROS order, map axes) is carried back likewise, with the
-        wheel noise of the track in between.
+        covariance (ROS order, map axes) is carried back likewise, with the wheel noise of
+        the track in between.
         """
         b = self.builder
-        assert b is not None
-        if not b.has_wheel or len(self.wheel) == 0:
-            return traj
-        t_pre = np.array([s for s in self._all_steps
-                          if int(self.wheel.t[0]) <= s < b.t0], dtype=np.int64)
+        if b is None or self._first_kf is None or not b.has_wheel or len(self.wheel) == 0:
+            return None
+        first, first_cov = self._first_kf
+        t_ns = np.asarray(t_ns, np.int64)
+        t_pre = t_ns[(t_ns >= int(self.wheel.t[0])) & (t_ns < b.t0)]
         if len(t_pre) == 0:
-            return traj
+            return None
         p0 = self.wheel.at(np.int64(b.t0))
         rel = se2_between(p0[None, :], self.wheel.at(t_pre))
         pos = np.empty((len(t_pre), 3))
@@ -746,11 +749,7 @@ class GraphEstimator:
                 noise = covariance.to_map(pose.rotation().matrix(), noise)
                 cov[i] = covariance.carry(first_cov, np.asarray(first.translation()), pos[i],
                                           noise[None])[0]
-        return PoseStream(np.concatenate([t_pre, traj.t_ns]),
-                          np.concatenate([pos, traj.position]),
-                          np.concatenate([quat, traj.quat_xyzw]), True,
-                          None if cov is None or traj.covariance is None
-                          else np.concatenate([cov, traj.covariance]))
+        return PoseStream(t_pre, pos, quat, True, cov)
 
     # ------------------------------------------------------------------ report
     def range_classes(self) -> RangeClasses | None:
