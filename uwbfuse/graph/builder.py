@@ -481,6 +481,24 @@ class GraphBuilder:
         return np.array([d.transformFrom(self.tag) for d in self.delta(t_a, t_b, pose_a, vel_a)]
                         ).reshape(-1, 3)
 
+    def use_priors(self, priors: RangePriors | None) -> None:
+        """The learned NLOS classifier's per-range priors (None: the mixture's own)."""
+        self.priors = priors
+
+    def set_head(self, pose: gtsam.Pose3, vel: np.ndarray | None = None,
+                 bias: gtsam.imuBias.ConstantBias | None = None,
+                 range_bias: np.ndarray | None = None) -> None:
+        """The newest keyframe's solved state, which `predict` and the next keyframe's
+        factors start from: base pose in the map frame, velocity m/s (map), IMU bias,
+        per-anchor range biases m; None keeps the current value."""
+        self.pose = pose
+        if vel is not None:
+            self.vel = vel
+        if bias is not None:
+            self.bias = bias
+        if range_bias is not None:
+            self.range_bias = range_bias
+
     def predict(self, t: int) -> gtsam.Pose3:
         """Causal pose at t from the newest keyframe estimate plus odometry/IMU motion."""
         if self.k < 0:

@@ -161,7 +161,7 @@ class GraphEstimator(EstimatorBase):
         odds in the LOS/NLOS mixture (online and batch)."""
         self._range_priors = priors
         if self.builder is not None:
-            self.builder.priors = priors
+            self.builder.use_priors(priors)
 
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
         """Range batch: stamps (N,) ns, anchor index (N,), range (N,) m."""
@@ -242,7 +242,7 @@ class GraphEstimator(EstimatorBase):
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is Method.BATCH,
         )
-        self.builder.priors = self._range_priors
+        self.builder.use_priors(self._range_priors)
         for t, a, r in self.init.pre_ranges:
             self.builder.add_ranges(t, a, r)
         self.init.pre_ranges.clear()
@@ -282,12 +282,11 @@ class GraphEstimator(EstimatorBase):
             for batch, j, ps in inc.replaced:
                 batch.factors[j] = [idx[p] for p in ps]
             k = b.k
-            b.pose = sm.pose(k)
-            if b.has_imu:
-                b.vel = sm.velocity(k)
-                b.bias = sm.bias(k)
-            if b.with_bias:
-                b.range_bias = np.array([sm.range_bias(a) for a in range(len(self.anchors))])
+            b.set_head(sm.pose(k),
+                       sm.velocity(k) if b.has_imu else None,
+                       sm.bias(k) if b.has_imu else None,
+                       np.array([sm.range_bias(a) for a in range(len(self.anchors))])
+                       if b.with_bias else None)
             self._read_nlos_states(sm, b)
             self._save_head_covariance(sm, b)
             self._save_leaving(sm, b)
@@ -699,7 +698,7 @@ class GraphEstimator(EstimatorBase):
         # epochs after the last keyframe: odometry from the last keyframe
         late = np.flatnonzero(t > b.time_of(n - 1))
         if len(late):
-            b.pose = poses[-1]
+            b.set_head(poses[-1])
             for i in late:
                 pp = b.predict(int(t[i]))
                 p[i] = pp.translation()
