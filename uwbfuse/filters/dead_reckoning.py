@@ -53,6 +53,7 @@ from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance, unicycle_transition
+from uwbfuse.positioning.wheel_track import arc_steps
 from uwbfuse.streams import F64, NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
@@ -177,8 +178,7 @@ class OdomDeadReckoning(_Base):
         dth = w * dt
         yaw_end = self._state[2] + np.cumsum(dth)
         yaw_mid = yaw_end - 0.5 * dth
-        chord = v * dt * np.sinc(dth / (2.0 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
-        dx, dy = chord * np.cos(yaw_mid), chord * np.sin(yaw_mid)
+        dx, dy = arc_steps(v, dt, yaw_end - dth, dth)
         phi, q = unicycle_transition(dx, dy, v, dt, yaw_mid, *self._sigma)
         self._P = phi @ self._P @ phi.T + q
         x = self._state[0] + np.cumsum(dx)
@@ -197,9 +197,9 @@ class OdomDeadReckoning(_Base):
         v, w = self._twist
         x, y, yaw = self._state
         dth = w * dt
-        chord = v * dt * float(np.sinc(dth / (2.0 * np.pi)))
-        x += chord * math.cos(yaw + 0.5 * dth)
-        y += chord * math.sin(yaw + 0.5 * dth)
+        ddx, ddy = arc_steps(np.float64(v), np.float64(dt), yaw, np.float64(dth))
+        x += float(ddx)
+        y += float(ddy)
         self._pose = PoseEstimate(
             int(t_ns), np.array([x, y, 0.0]), _yaw_quat(np.array(yaw + dth)),
             pose_covariance(self._P, (0, 1, None, None, None, 2)),

@@ -100,7 +100,6 @@ from uwbfuse.filters.models import (
     quat_xyzw_from_yaw,
     skew,
     so3_exp,
-    unicycle_track,
     unicycle_transition,
 )
 from uwbfuse.filters.pose_update import (
@@ -110,6 +109,7 @@ from uwbfuse.filters.pose_update import (
     pose_measurement,
     wrap,
 )
+from uwbfuse.positioning.wheel_track import unicycle_track
 from uwbfuse.streams import AnchorMap
 
 E3 = np.array([0.0, 0.0, 1.0])

@@ -359,31 +359,6 @@ def block_noise(phi: F64, q_diag: F64, t: float) -> F64:
     return 0.5 * (q + q.T)
 
 
-def unicycle_track(
-    x: F64, y: F64, yaw: F64, v: F64, w: F64, dt: F64
-) -> tuple[F64, F64, F64, F64]:
-    """Planar unicycle over N intervals, batched over B: midpoint heading per interval.
-
-    x, y, yaw (B,) m, m, rad; v (N,) m/s, w (N,) rad/s, dt (N,) s. Returns x, y, yaw at
-    the N+1 boundaries (B,N+1) and the heading at each interval's middle (B,N).
-    """
-    dth = w * dt
-    cum = np.concatenate([[0.0], np.cumsum(dth)])
-    yaw_b = yaw[:, None] + cum[None, :]
-    mid = yaw_b[:, :-1] + 0.5 * dth[None, :]
-    vdt = v * dt
-    n = len(dt)
-    xb = np.empty((len(x), n + 1))
-    yb = np.empty((len(x), n + 1))
-    xb[:, 0] = x
-    yb[:, 0] = y
-    np.cumsum(vdt * np.cos(mid), axis=1, out=xb[:, 1:])
-    np.cumsum(vdt * np.sin(mid), axis=1, out=yb[:, 1:])
-    xb[:, 1:] += x[:, None]
-    yb[:, 1:] += y[:, None]
-    return xb, yb, yaw_b, mid
-
-
 def unicycle_transition(
     dx: F64, dy: F64, v: F64, dt: F64, yaw_mid: F64, sigma_v: float, sigma_w: float
 ) -> tuple[F64, F64]:

@@ -56,9 +56,9 @@ from uwbfuse.filters.models import (
     mechanise,
     so3_exp,
     so3_log,
-    unicycle_track,
     unicycle_transition,
 )
+from uwbfuse.positioning.wheel_track import unicycle_track
 from uwbfuse.streams import AnchorMap
 
 

@@ -56,6 +56,7 @@ from uwbfuse.positioning.multilateration import (
     group_epochs,
     multilaterate,
 )
+from uwbfuse.positioning.wheel_track import arc_steps
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -557,8 +558,8 @@ class Initialiser:
             else:
                 yaw_w = np.cumsum(om * dtw)
             yaw_prev = np.concatenate([[yaw_w[0]], yaw_w[:-1]])
-            ym = 0.5 * (yaw_w + yaw_prev)
-            step = np.column_stack([v * dtw * np.cos(ym), v * dtw * np.sin(ym), np.zeros_like(v)])
+            sx, sy = arc_steps(v, dtw, yaw_prev, yaw_w - yaw_prev)
+            step = np.column_stack([sx, sy, np.zeros_like(v)])
             pos = np.cumsum(step, axis=0)
             p_start = np.array([np.interp(t_start_s, tw, pos[:, k]) for k in range(3)])
             d = np.column_stack([np.interp(tq, tw, pos[:, k]) for k in range(3)]) - p_start

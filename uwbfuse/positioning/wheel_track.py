@@ -17,15 +17,49 @@ from uwbfuse.config import WheelConfig
 from uwbfuse.streams import NS_PER_S
 
 
+def arc_steps(v: np.ndarray, dt: np.ndarray, yaw0: np.ndarray | float,
+              dyaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dx, dy), m, of constant-velocity arcs: speed v m/s for dt s while the heading
+    turns by dyaw rad from yaw0 rad, in the frame yaw0 is measured in (broadcasting).
+
+    The project's one wheel integrator: each arc is exactly its chord, of length
+    v dt sinc(dyaw / 2), at the heading halfway through the turn.
+    """
+    chord = v * dt * np.sinc(dyaw / (2.0 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
+    mid = yaw0 + 0.5 * dyaw
+    return chord * np.cos(mid), chord * np.sin(mid)
+
+
 def _arcs(v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Local (dx, dy, dtheta) of constant-velocity arcs (vectorised)."""
+    """Local (dx, dy, dtheta) of constant-velocity arcs (vectorised, `arc_steps`)."""
     th = w * tau
-    s = v * tau
-    small = np.abs(th) < 1e-6
-    th_safe = np.where(small, 1.0, th)
-    dx = np.where(small, s * (1.0 - th * th / 6.0), s * np.sin(th_safe) / th_safe)
-    dy = np.where(small, s * th / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
+    dx, dy = arc_steps(v, tau, 0.0, th)
     return dx, dy, th
+
+
+def unicycle_track(
+    x: np.ndarray, y: np.ndarray, yaw: np.ndarray, v: np.ndarray, w: np.ndarray,
+    dt: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Planar unicycle over N intervals (`arc_steps`), batched over B start states.
+
+    x, y, yaw (B,) m, m, rad; v (N,) m/s, w (N,) rad/s, dt (N,) s. Returns x, y, yaw at
+    the N+1 boundaries (B,N+1) and the heading at each interval's middle (B,N).
+    """
+    dth = w * dt
+    cum = np.concatenate([[0.0], np.cumsum(dth)])
+    yaw_b = yaw[:, None] + cum[None, :]
+    dx, dy = arc_steps(v[None, :], dt[None, :], yaw_b[:, :-1], dth[None, :])
+    n = len(dt)
+    xb = np.empty((len(x), n + 1))
+    yb = np.empty((len(x), n + 1))
+    xb[:, 0] = x
+    yb[:, 0] = y
+    np.cumsum(dx, axis=1, out=xb[:, 1:])
+    np.cumsum(dy, axis=1, out=yb[:, 1:])
+    xb[:, 1:] += x[:, None]
+    yb[:, 1:] += y[:, None]
+    return xb, yb, yaw_b, yaw_b[:, :-1] + 0.5 * dth[None, :]
 
 
 def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
