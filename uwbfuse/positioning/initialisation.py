@@ -206,6 +206,119 @@ class _Track:
     sens_sigma: F64  # (P,) prior std of those parameters
 
 
+@dataclass
+class _HeadingResiduals:
+    """Whitened residuals and Jacobian of the heading solve (`Initialiser._solve_heading`).
+
+    Unknowns x: start base position p0 (3) m and yaw0 rad in the map frame, then the
+    common range scale error k (n_k = 1: ranges read (1 + k) x the distance), the start
+    velocity (3, m/s, when `solve_v`), the track's sensitivity parameters (n_s: accel
+    bias, gyro bias, tilt) and the per-anchor range biases (n_b, m). Residuals: each range
+    over `sig`, then the priors (start fix, velocity, sensitivities, biases, scale, height).
+    """
+
+    w0: F64  # (N,3) tag relative to the window-start base, yaw-zero frame, m
+    sens: F64  # (N,3,P) sensitivities of w0
+    dtr: F64  # (N,) s since the window start
+    anc: F64  # (N,3) anchor of each range, m
+    anc_col: np.ndarray  # (N,) column of each range's anchor among the biases
+    rr: F64  # (N,) ranges, m
+    sig: float  # range sigma, m
+    lev0: F64  # (3,) lever arm at the window start, yaw-zero frame, m
+    prior: tuple[F64, float] | None  # standstill fix (tag position m, std m)
+    sens_sigma: F64  # (P,) prior std of the sensitivity parameters
+    b_sigma: float  # prior std of the range biases, m
+    z_prior: float  # start height prior, m
+    z_sigma: float  # its std, m
+    solve_v: bool
+    n_k: int
+    n_s: int
+    n_b: int
+
+    @property
+    def i_k(self) -> int:
+        return 4
+
+    @property
+    def i_v(self) -> int:
+        return 4 + self.n_k
+
+    @property
+    def i_s(self) -> int:
+        return self.i_v + 3 * self.solve_v
+
+    @property
+    def i_b(self) -> int:
+        return self.i_s + self.n_s
+
+    @property
+    def n(self) -> int:
+        """Number of unknowns."""
+        return self.i_b + self.n_b
+
+    def fun_jac(self, x: F64) -> tuple[F64, F64]:
+        """Residuals (n_r + priors,) and their Jacobian at x."""
+        w0, sens, dtr, anc, anc_col, rr, sig, lev0, prior = (
+            self.w0, self.sens, self.dtr, self.anc, self.anc_col, self.rr, self.sig,
+            self.lev0, self.prior)
+        solve_v, n_k, n_s, n_b = self.solve_v, self.n_k, self.n_s, self.n_b
+        i_k, i_v, i_s, i_b, n_unk = self.i_k, self.i_v, self.i_s, self.i_b, self.n
+        n_r = len(rr)
+        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b + n_k + 1
+        p0, yaw0 = x[:3], x[3]
+        rz = rot_z(yaw0)
+        drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
+                        [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
+        w = w0 + (sens @ x[i_s:i_b] if n_s else 0.0)
+        tag = p0 + w @ rz.T
+        if solve_v:
+            tag = tag + np.outer(dtr, x[i_v:i_v + 3])
+        diff = tag - anc
+        dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-6)
+        u = diff / dist[:, None]
+        b = x[i_b:][anc_col] if n_b else 0.0
+        sc = 1.0 + x[i_k] if n_k else 1.0
+        f = np.empty(n_r + n_prior)
+        jac = np.zeros((n_r + n_prior, n_unk))
+        f[:n_r] = (sc * dist + b - rr) / sig
+        jac[:n_r, :3] = sc * u / sig
+        jac[:n_r, 3] = sc * np.einsum("ni,ni->n", u, w @ drz.T) / sig
+        if n_k:
+            jac[:n_r, i_k] = dist / sig
+        if solve_v:
+            jac[:n_r, i_v:i_v + 3] = sc * u * dtr[:, None] / sig
+        if n_s:
+            jac[:n_r, i_s:i_b] = sc * np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
+        if n_b:
+            jac[np.arange(n_r), i_b + anc_col] = 1.0 / sig
+        row = n_r
+        if prior is not None:
+            sp = max(prior[1], 0.02)
+            f[row:row + 3] = (p0 + rz @ lev0 - prior[0]) / sp
+            jac[row:row + 3, :3] = np.eye(3) / sp
+            jac[row:row + 3, 3] = drz @ lev0 / sp
+            row += 3
+        if solve_v:
+            f[row:row + 3] = x[i_v:i_v + 3] / _V0_SIGMA
+            jac[row:row + 3, i_v:i_v + 3] = np.eye(3) / _V0_SIGMA
+            row += 3
+        if n_s:
+            f[row:row + n_s] = x[i_s:i_b] / self.sens_sigma
+            jac[row:row + n_s, i_s:i_b] = np.diag(1.0 / self.sens_sigma)
+            row += n_s
+        if n_b:
+            f[row:row + n_b] = x[i_b:] / self.b_sigma
+            jac[row:row + n_b, i_b:] = np.eye(n_b) / self.b_sigma
+            row += n_b
+        if n_k:
+            f[row] = x[i_k] / _SCALE_SIGMA
+            jac[row, i_k] = 1.0 / _SCALE_SIGMA
+            row += 1
+        f[row] = (x[2] - self.z_prior) / self.z_sigma
+        jac[row, 2] = 1.0 / self.z_sigma
+        return f, jac
+
+
 class Initialiser:
     """Initial state from IMU / wheels / UWB, whichever the log has (see module doc).
 
@@ -676,13 +789,6 @@ class Initialiser:
         # of tens of metres is metres on large sites. Wheeled logs only: the wheel track
         # carries the metric scale; a free 3-D tag would trade it against its height.
         n_k = 1 if self.planar else 0
-        i_k = 4
-        i_v = 4 + n_k
-        i_s = i_v + 3 * solve_v
-        i_b = i_s + n_s
-        n_unk = i_b + n_b
-        n_r = len(rr)
-        n_prior = (3 if prior is not None else 0) + 3 * solve_v + n_s + n_b + n_k + 1
         # Weak prior on the start height: the floor for wheeled logs, else below the anchors.
         if self.planar:
             z_prior, z_sigma = self.config.init.base_height, _Z_SIGMA_PLANAR
@@ -690,59 +796,11 @@ class Initialiser:
             z_prior = default_tag_z(self.anchors.positions) - float(self.lever[2])
             z_sigma = _Z_SIGMA_FREE
 
-        def fun_jac(x: F64) -> tuple[F64, F64]:
-            p0, yaw0 = x[:3], x[3]
-            rz = rot_z(yaw0)
-            drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
-                            [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
-            w = w0 + (sens @ x[i_s:i_b] if n_s else 0.0)
-            tag = p0 + w @ rz.T
-            if solve_v:
-                tag = tag + np.outer(dtr, x[i_v:i_v + 3])
-            diff = tag - anc
-            dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-6)
-            u = diff / dist[:, None]
-            b = x[i_b:][anc_col] if n_b else 0.0
-            sc = 1.0 + x[i_k] if n_k else 1.0
-            f = np.empty(n_r + n_prior)
-            jac = np.zeros((n_r + n_prior, n_unk))
-            f[:n_r] = (sc * dist + b - rr) / sig
-            jac[:n_r, :3] = sc * u / sig
-            jac[:n_r, 3] = sc * np.einsum("ni,ni->n", u, w @ drz.T) / sig
-            if n_k:
-                jac[:n_r, i_k] = dist / sig
-            if solve_v:
-                jac[:n_r, i_v:i_v + 3] = sc * u * dtr[:, None] / sig
-            if n_s:
-                jac[:n_r, i_s:i_b] = sc * np.einsum("ni,ij,njk->nk", u, rz, sens) / sig
-            if n_b:
-                jac[np.arange(n_r), i_b + anc_col] = 1.0 / sig
-            row = n_r
-            if prior is not None:
-                sp = max(prior[1], 0.02)
-                f[row:row + 3] = (p0 + rz @ lev0 - prior[0]) / sp
-                jac[row:row + 3, :3] = np.eye(3) / sp
-                jac[row:row + 3, 3] = drz @ lev0 / sp
-                row += 3
-            if solve_v:
-                f[row:row + 3] = x[i_v:i_v + 3] / _V0_SIGMA
-                jac[row:row + 3, i_v:i_v + 3] = np.eye(3) / _V0_SIGMA
-                row += 3
-            if n_s:
-                f[row:row + n_s] = x[i_s:i_b] / trk.sens_sigma
-                jac[row:row + n_s, i_s:i_b] = np.diag(1.0 / trk.sens_sigma)
-                row += n_s
-            if n_b:
-                f[row:row + n_b] = x[i_b:] / b_sigma
-                jac[row:row + n_b, i_b:] = np.eye(n_b) / b_sigma
-                row += n_b
-            if n_k:
-                f[row] = x[i_k] / _SCALE_SIGMA
-                jac[row, i_k] = 1.0 / _SCALE_SIGMA
-                row += 1
-            f[row] = (x[2] - z_prior) / z_sigma
-            jac[row, 2] = 1.0 / z_sigma
-            return f, jac
+        problem = _HeadingResiduals(
+            w0=w0, sens=sens, dtr=dtr, anc=anc, anc_col=anc_col, rr=rr, sig=sig, lev0=lev0,
+            prior=prior, sens_sigma=trk.sens_sigma, b_sigma=b_sigma, z_prior=z_prior,
+            z_sigma=z_sigma, solve_v=solve_v, n_k=n_k, n_s=n_s, n_b=n_b)
+        i_v, n_unk, n_r = problem.i_v, problem.n, len(rr)
 
         tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
         v_seed = np.zeros(3)
@@ -758,12 +816,30 @@ class Initialiser:
             x0[3] = yaw_s
             if solve_v:
                 x0[i_v:i_v + 3] = v_seed
-            sol = robust_lm(fun_jac, x0, n_r, _SOFT_L1_SCALE)
+            sol = robust_lm(problem.fun_jac, x0, n_r, _SOFT_L1_SCALE)
             if sol is not None:
                 sols.append(sol)
         if not sols:
             self.last_reason = "heading solve failed"
             return None
+        return self._accept_heading(sols, problem, trk, t_ns, w_start, motion_start, max_win,
+                                    gyro_bias, accel_bias, still_ok and at_rest)
+
+    def _accept_heading(
+        self, sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int,
+        w_start: int, motion_start: int | None, max_win: float, gyro_bias: F64,
+        accel_bias: F64, still: bool,
+    ) -> InitialState | None:
+        """The start state at t_ns from the heading solve's local minima `sols` (over the
+        window from `w_start` ns), or None while the heading is not yet determined (its
+        acceptance rule: consistent residuals, and a determined yaw with no close rival
+        minimum or a full window waited)."""
+        cfg = self.config.init
+        rr, sig = problem.rr, problem.sig
+        i_k, i_v, i_s, i_b, n_unk = problem.i_k, problem.i_v, problem.i_s, problem.i_b, problem.n
+        n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
+        ts0 = w_start / NS_PER_S
+        t_now = t_ns / NS_PER_S
         sols.sort(key=lambda s: s.cost)
         best = sols[0]
         yaw_best = _wrap(best.x[3])
@@ -813,7 +889,7 @@ class Initialiser:
         state = InitialState(
             t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
             gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
-            yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still_ok and at_rest,
+            yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still,
             range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
             range_sigma=max(mad, 1.0) * sig,
         )
