@@ -352,8 +352,8 @@ def solve(
         candidates = {n: m for n, m in candidates.items() if m.nlos}
     elif online_verdict == "robust":
         # likewise the other way: the online pass scored the robust model decisively better
-        # (a paired test over its one-step residuals of every range, not an eighth):
-        # ISAS-Walk1 z +19, its held-out eighth 0.93 / 0.91 nats for the mixture
+        # (a paired test over the one-step residuals of every range, not an eighth of
+        # them; docs/results.md, "ISAS-Walk1 batch")
         candidates = {n: m for n, m in candidates.items() if not m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
