@@ -58,6 +58,24 @@ def test_labyrinth_batch_refits_its_robust_model_over_the_whole_log() -> None:
     assert "whole_log_refit" not in estimate(log, Method.BATCH, fixed, covariance=False).report
 
 
+def test_isas_batch_backdates_its_robust_fit_by_the_imu() -> None:
+    """ISAS-Walk1 (IMU + UWB, no wheels): the graph starts 12 s in; the online pass scores
+    the robust range model decisively better, so batch fits it and runs again with the
+    start carried back to the first data by the gyro and a UWB fix (measured 2-D ATE, SE(2)
+    against `gt_anchor_frame.tum`: 0.136 m in one pass with the mixture, 0.087 after)."""
+    cfg = load_config(real("isas-walk1/config.toml"))
+    log = read_log(real("isas-walk1/ISAS-Walk1"), cfg)
+    res = estimate(log, Method.BATCH, cfg, covariance=False)
+    refit = res.report["whole_log_refit"]
+    assert refit["first_pass_range_model"] == "robust" and refit["start_backdate_s"] > 10
+    assert res.report["batch"]["range_model"] == "robust"
+    t0, _ = log.time_span_ns()
+    assert res.report["first_keyframe_t_ns"] <= t0 + 1e8
+    ev = evaluate(res.trajectory, read_tum(real("isas-walk1/gt_anchor_frame.tum")),
+                  align="se2", max_dt=0.05)
+    assert ev.ate_2d.rmse < 0.11  # issue 13's target for this log
+
+
 # measured (SE(3)-aligned to the Vive GT, IMU noise inflation `auto` = 30 without wheels):
 # isam2 0.231, isam2-smoothed 0.134, batch 0.124 (ekf 0.165; at inflation 10: 0.453, 0.218,
 # 0.227)

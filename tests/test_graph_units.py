@@ -245,3 +245,23 @@ def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors(
     assert f.error(values) < 0.5 * between_factor(
         X(5), X(6), deltas[5], cov, (0.01, 0.01, 0.01)).error(values)
     assert not ws.apply([graph])  # unchanged scales rebuild nothing
+
+
+def test_imu_rotation_between_turns_the_bias_free_gyro_into_the_base_frame():
+    """Test `ImuBuffer.rotation_between`: 0.7 rad/s about the IMU's z for 2 s, gyro bias
+    0.1 rad/s, IMU mounted rolled 90 deg (its z along the base's -y): a 1.2 rad turn about
+    the base's -y; and the attitude change composes over split intervals."""
+    from uwbfuse.graph.imu import ImuBuffer
+
+    buf = ImuBuffer()
+    t = np.arange(0, 201, dtype=np.int64) * 10_000_000  # 100 Hz, 0..2 s
+    gyro = np.tile([0.0, 0.0, 0.7], (len(t), 1))
+    buf.add(t, gyro, np.tile([0.0, 0.0, 9.81], (len(t), 1)))
+    r_bs = gtsam.Rot3.Rx(math.pi / 2).matrix()
+    bias = np.array([0.0, 0.0, 0.1])
+    rot = buf.rotation_between(0, int(2e9), bias, r_bs)
+    expected = gtsam.Rot3.AxisAngle(np.array([0.0, -1.0, 0.0]), 1.2).matrix()
+    np.testing.assert_allclose(rot, expected, atol=1e-9)
+    half = buf.rotation_between(0, int(1e9), bias, r_bs)
+    np.testing.assert_allclose(half @ buf.rotation_between(int(1e9), int(2e9), bias, r_bs),
+                               rot, atol=1e-9)

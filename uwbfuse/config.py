@@ -250,8 +250,9 @@ class GraphConfig(_Section):
         "the odometry/IMU prediction from the newest solved keyframe)"
     )
     start_backdate: float = Field(
-        0.0, ge=0, description="wheeled logs: the graph's first keyframe is set this many "
-        "seconds before the start (the start state carried back along the wheel track, no "
+        0.0, ge=0, description="logs with wheels or an IMU: the graph's first keyframe is "
+        "set this many seconds before the start (the start state carried back along the "
+        "wheel track, else its attitude by the gyro and its position from a UWB fix; no "
         "earlier than the first wheel sample and range), so that the ranges and odometry "
         "buffered while the start was found are in the graph from the first update; s, "
         "0 = at the start state's time. 10 helps sites with a clean start (simulated room: "

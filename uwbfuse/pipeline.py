@@ -200,7 +200,9 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     starts"). The second pass chooses its range model again, over the whole log (a long
     still stretch before the start can favour the mixture: room-static). Only where the
     user left both `graph.range_model` and `graph.start_backdate` at their defaults, on
-    wheeled logs, and where the first pass's graph started after the first data.
+    logs with wheels or an IMU to carry the start back (without wheels the IMU carries the
+    attitude, a UWB fix gives the position), and where the first pass's graph started
+    after the first data.
     """
     g = config.graph
     fields = type(g).model_fields
@@ -208,8 +210,8 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     first_kf = report.get("first_keyframe_t_ns")
     if (method is not Method.BATCH or g.range_model != "auto"
             or g.start_backdate != fields["start_backdate"].default
-            or not chosen.startswith("robust") or log.wheel is None or not len(log.wheel)
-            or first_kf is None):
+            or not chosen.startswith("robust") or first_kf is None
+            or not any(s is not None and len(s) for s in (log.wheel, log.imu))):
         return None
     t0, _ = log.time_span_ns()
     back_s = (int(first_kf) - t0) / NS_PER_S

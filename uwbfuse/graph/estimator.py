@@ -50,7 +50,7 @@ from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
-from uwbfuse.graph.imu import ImuBuffer
+from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
@@ -84,6 +84,12 @@ _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
     q = pose.rotation().toQuaternion()
     return np.array([q.x(), q.y(), q.z(), q.w()])
+
+
+PROVISIONAL_FIX_S = 0.5  # s: the backdated start's UWB fix is taken this long after it
+# (the initialiser's fixes over the last 0.5 s)
+BACKDATE_YAW_DRIFT = 0.1  # rad: allowance for the gyro's drift over the carried-back seconds
+# (a MEMS gyro bias of 0.01 rad/s unmodelled over 10 s)
 
 
 class GraphEstimator(EstimatorBase):
@@ -202,9 +208,9 @@ class GraphEstimator(EstimatorBase):
     def _backdated(self, state: Any) -> Any:
         """The start state carried back along the wheel track by `graph.start_backdate`
         seconds (no earlier than the first wheel sample, range and IMU sample), so that the
-        graph's first keyframe precedes the data buffered while the start was found;
-        `state` itself without wheels (no track to carry it) or when there is nothing to
-        gain.
+        graph's first keyframe precedes the data buffered while the start was found (with
+        an IMU and no wheels: `_backdated_imu`); `state` itself with neither or when there
+        is nothing to gain.
 
         Off by default: isam2 2-D ATE, 6 seeds x 120 s, backdate 0 -> 10 s: room 0.0176 ->
         0.0128 m, but factory 0.058 -> 0.067, warehouse 0.101 -> 0.107 and warehouse-nlos
@@ -213,6 +219,8 @@ class GraphEstimator(EstimatorBase):
         """
         w = self.wheel
         back_ns = round(self.cfg.graph.start_backdate * NS_PER_S)
+        if back_ns > 0 and "wheel" not in self.streams and dataclasses.is_dataclass(state):
+            return self._backdated_imu(state, back_ns)
         if (back_ns <= 0 or "wheel" not in self.streams or len(w) < 2
                 or not dataclasses.is_dataclass(state)):
             return state
@@ -234,6 +242,38 @@ class GraphEstimator(EstimatorBase):
         vel = rot @ np.array([float(w.v[i]), 0.0, 0.0])
         return dataclasses.replace(state, t_ns=t_back, position=np.asarray(pose.translation()),
                                    R_map_base=rot, velocity=vel)
+
+    def _backdated_imu(self, state: Any, back_ns: int) -> Any:
+        """An IMU log without wheels: the start carried back by `back_ns` (no earlier than
+        the first range and IMU sample): the attitude by the gyro integrated backwards (at
+        the start's gyro bias), the position the initialiser's UWB fix there (its spread as
+        sigma, no tighter than the start's), the velocity from that fix and the one
+        2 x PROVISIONAL_FIX_S later, the heading sigma widened by BACKDATE_YAW_DRIFT.
+        `state` itself where no fix is available there."""
+        if "imu" not in self.streams or self.imu.first_t is None:
+            return state
+        t_init = int(state.t_ns)
+        floor = [t_init - back_ns, self.imu.first_t]
+        t_pre = self.init.pre_range_arrays()[0] if self.init.pre_ranges else np.zeros(0)
+        if len(t_pre):
+            floor.append(int(t_pre.min()))
+        t_back = max(floor)
+        if t_back > t_init - round(NS_PER_S / self.cfg.graph.keyframe_rate):
+            return state
+        fix = self.init.provisional(t_back + round(PROVISIONAL_FIX_S * NS_PER_S))
+        later = self.init.provisional(t_back + round(3 * PROVISIONAL_FIX_S * NS_PER_S))
+        if fix is None or later is None:
+            return state
+        vel = (np.asarray(later.position, np.float64) - np.asarray(fix.position, np.float64)
+               ) / (2 * PROVISIONAL_FIX_S)
+        r_bs = pose_from_xyzq(self.cfg.extrinsics.imu_in_base).rotation().matrix()
+        turn = self.imu.rotation_between(t_back, t_init, state.gyro_bias, r_bs)
+        r_back = np.asarray(state.R_map_base, np.float64) @ turn.T
+        return dataclasses.replace(
+            state, t_ns=t_back, position=np.asarray(fix.position, np.float64),
+            R_map_base=r_back, velocity=vel,
+            position_sigma=max(float(fix.position_sigma), float(state.position_sigma)),
+            yaw_sigma=min(float(state.yaw_sigma) + BACKDATE_YAW_DRIFT, np.pi))
 
     def _start(self, state: Any) -> None:
         self._init_t = int(state.t_ns)

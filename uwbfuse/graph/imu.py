@@ -143,6 +143,19 @@ class ImuBuffer:
         keep = dt > 0
         return self._gyro[idx][keep], self._acc[idx][keep], dt[keep]
 
+    def rotation_between(self, t0: int, t1: int, gyro_bias: np.ndarray,
+                         body_r_imu: np.ndarray) -> np.ndarray:
+        """Base-frame attitude change (3,3) from t0 to t1 (R_t0^T R_t1): the gyro (rad/s,
+        IMU frame, less `gyro_bias`) integrated over the zero-order-hold pieces, turned into
+        the base frame by `body_r_imu` (3,3)."""
+        gy, _acc, dt = self.pieces(t0, t1)
+        rot = gtsam.Rot3()
+        bg = np.asarray(gyro_bias, np.float64)
+        for w, d in zip(gy, dt.tolist(), strict=True):
+            rot = rot.compose(gtsam.Rot3.Expmap((w - bg) * d))
+        r_bs = np.asarray(body_r_imu, np.float64)
+        return r_bs @ rot.matrix() @ r_bs.T
+
     def mean_between(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, int]:
         """Mean gyro (rad/s), mean accel (m/s^2) and sample count over [t0, t1]."""
         self._flush()

@@ -311,7 +311,8 @@ def solve(
     """EM + LM over the full graph (see the module docstring).
 
     `graph.range_model = "auto"`: where the online pass's prequential test found the
-    mixture significantly better (`online_verdict` "mixture") it is fitted alone; otherwise
+    mixture significantly better (`online_verdict` "mixture") it is fitted alone, where it
+    found the robust model better ("robust") the robust candidates alone; otherwise
     held-out cross-validation (`_cross_validated`) chooses among the candidates (the
     online verdict is the pass's own, whose trajectory differs from batch's fits).
 
@@ -349,6 +350,11 @@ def solve(
         # null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no held-out range
         # can show
         candidates = {n: m for n, m in candidates.items() if m.nlos}
+    elif online_verdict == "robust":
+        # likewise the other way: the online pass scored the robust model decisively better
+        # (a paired test over the one-step residuals of every range, not an eighth of
+        # them; docs/results.md, "ISAS-Walk1 batch")
+        candidates = {n: m for n, m in candidates.items() if not m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))
