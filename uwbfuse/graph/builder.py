@@ -268,6 +268,7 @@ class GraphBuilder:
         imu: imu_mod.ImuBuffer,
         wheel: WheelTrack,
         record: bool,
+        seeding: bool | None = None,
     ) -> None:
         self.cfg = config
         self.g = config.graph
@@ -328,6 +329,9 @@ class GraphBuilder:
         self.priors: RangePriors | None = None
         self.poses = PoseQueue(self.t0)  # external poses for the keyframes to come
         self.record = record
+        # the online pass only seeds batch (default: whenever the graph is recorded): its
+        # anchor offsets keep the configured prior (see `first`)
+        self.seeding = record if seeding is None else seeding
         self.records = RangeRecords()
         # roll, pitch (rad) and z (m) sigmas of the wheel factor
         self.wheel_records = WheelRecords(
@@ -597,7 +601,7 @@ class GraphBuilder:
             # (not in batch's seeding pass: its EM was tuned from that seed, and the tighter
             # seed moved Plaza1's batch 0.42 -> 0.72 m, ISAS-Walk1's 0.124 -> 0.144 m)
             s_a = self.g.range_bias_anchor_sigma
-            if not self.record:
+            if not self.seeding:
                 s_a = held_anchor_bias_sigma(s_a, ONLINE_ANCHOR_BIAS_SIGMA)
             inc.graph.add(gtsam.PriorFactorDouble(
                 C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_on)))

@@ -18,13 +18,15 @@ EM step.
 
 `finish()`:
 - isam2: None (the causal estimates are the output).
-- isam2-smoothed: every keyframe's estimate as it stood when it left the fixed-lag window
-  (the final iSAM2 estimate of that keyframe; keyframes still in the window at the end
-  take the final window estimate), interpolated to the step epochs.
-- batch: the whole log as one graph (every non-range factor recorded while streaming,
-  range factors rebuilt per EM round), solved by Levenberg-Marquardt with NLOS EM from the
-  isam2-smoothed keyframe estimates (`offline.solve`). The online pass of `batch` updates
-  iSAM2 once per `BATCH_CHUNK` keyframes (it only seeds LM).
+- isam2-smoothed and batch: the whole log as one graph (every non-range factor recorded
+  while streaming, range factors rebuilt per EM round), solved by Levenberg-Marquardt with
+  NLOS EM, range model, range scales and offsets chosen and fitted over the whole log,
+  from the keyframe estimates as they left the fixed-lag window (`offline.solve`).
+  isam2-smoothed smooths its own online pass (the one isam2 runs: `graph.update_every`,
+  anchor offsets held as online); the online pass of `batch` updates iSAM2 once per
+  `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it only seeds LM).
+  Smoothing only within the lag left each keyframe with the range scale, offsets and
+  LOS/NLOS classes of its window (docs/results.md, "isam2-smoothed: the whole graph").
 Both offline outputs are carried back from the start to the first wheel sample by the
 wheel track, so they cover the log from the first motion.
 
@@ -63,7 +65,7 @@ from uwbfuse.graph.uwb import (
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
-from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
+from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +80,8 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 LIVE_LATENCY_KEPT = 10_000  # update latencies `forget_before` keeps (16 min at 10 Hz)
+# the report's key for the whole-graph solve of `finish` (see the module docstring)
+FULL_GRAPH_REPORT = {Method.BATCH: "batch", Method.ISAM2_SMOOTHED: "final_smoothing"}
 _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
 
 
@@ -138,11 +142,10 @@ class GraphEstimator(EstimatorBase):
         self._hyp_count = 0
         self._batch_wall = 0.0
         self._static: PoseEstimate | None = None  # standstill fix before the start
-        # pose covariances (ROS order, map axes; `graph.marginal_covariances`): per keyframe
-        # as it left the window (isam2-smoothed), and the newest solved keyframe's
-        # (time, position, covariance, velocity covariance) that the causal output carries
+        # pose covariances (ROS order, map axes; `graph.marginal_covariances`): the newest
+        # solved keyframe's (time, position, covariance, velocity covariance) that the
+        # causal output carries (the offline outputs': `_batch_covariances`)
         self._with_cov = config.graph.marginal_covariances is not False  # auto: on
-        self._kf_cov: dict[int, np.ndarray] = {}
         self._head_cov: tuple[int, np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self._cov_latency: list[float] = []
         # the lag window's spread in map x, y over its LOS/NLOS assignments (m^2, from the
@@ -280,7 +283,7 @@ class GraphEstimator(EstimatorBase):
         state = self._backdated(state)
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
-            record=self.method is Method.BATCH,
+            record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
         )
         self.builder.use_priors(self._range_priors)
         for t, a, r in self.init.pre_ranges:
@@ -483,16 +486,6 @@ class GraphEstimator(EstimatorBase):
                 self._kf_bias[k] = sm.bias(k)
         except (RuntimeError, IndexError, ValueError):
             return  # not in this smoother (re-anchored): keep the earlier estimate if any
-        if self._with_cov and self.method is Method.ISAM2_SMOOTHED:
-            tic = time.perf_counter()
-            try:
-                rot = self._kf_pose[k].rotation().matrix()
-                cov = covariance.to_map(rot, sm.pose_covariance(k))
-                cov[:2, :2] += self._shift_moment
-                self._kf_cov[k] = cov
-            except (RuntimeError, IndexError, ValueError):
-                self._kf_cov.pop(k, None)  # no marginal: the pose goes out as unknown
-            self._cov_latency.append(time.perf_counter() - tic)
 
     def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """isam2: the newest solved keyframe's marginal (plus the window's LOS/NLOS spread
@@ -580,7 +573,7 @@ class GraphEstimator(EstimatorBase):
             return
         t_ns = min(int(t_ns), b.time_of(b.k) - round(self.cfg.graph.lag * NS_PER_S))
         k_old = min((t_ns - b.t0) // b.period_ns, self._saved_upto)
-        for kf in (self._kf_pose, self._kf_vel, self._kf_bias, self._kf_cov, self._kf_pred):
+        for kf in (self._kf_pose, self._kf_vel, self._kf_bias, self._kf_pred):
             for k in [k for k in kf if k < k_old]:
                 del kf[k]
         b.records.forget(int(k_old))
@@ -634,25 +627,13 @@ class GraphEstimator(EstimatorBase):
         self._finalise_online()
         b = self.builder
         n = b.k + 1
-        covs: np.ndarray | None = None
-        if self.method is Method.BATCH:
-            tic = time.perf_counter()
-            self._run_batch()
-            self._batch_wall = time.perf_counter() - tic
-            assert self._batch is not None
-            vals = self._batch.values
-            poses = [vals.atPose3(X(k)) for k in range(n)]
-            covs = self._batch_covariances(n)
-        else:
-            poses = [self._kf_pose.get(k) for k in range(n)]
-            last = None
-            for k in range(n):  # keyframes lost to a re-anchor keep their neighbour's pose
-                if poses[k] is None:
-                    poses[k] = last if last is not None else b.pose
-                last = poses[k]
-            if self._with_cov:
-                unknown = np.eye(6) * UNKNOWN_VARIANCE
-                covs = np.array([self._kf_cov.get(k, unknown) for k in range(n)])
+        tic = time.perf_counter()
+        self._run_batch()
+        self._batch_wall = time.perf_counter() - tic
+        assert self._batch is not None
+        vals = self._batch.values
+        poses = [vals.atPose3(X(k)) for k in range(n)]
+        covs = self._batch_covariances(n)
         return self._interpolate(poses, covs)
 
     def _batch_covariances(self, n: int) -> np.ndarray | None:
@@ -688,7 +669,7 @@ class GraphEstimator(EstimatorBase):
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
-        """batch only, after the online pass: what `offline.solve` starts from: the
+        """isam2-smoothed and batch, after the online pass: what `offline.solve` starts from: the
         recorded non-range factors, the initial values (the online pass's keyframes as
         they left the window, anchors, range biases) and the range records
         (`RangeRecords.arrays`). `graph.reference` solves the same problem plainly."""
@@ -807,7 +788,7 @@ class GraphEstimator(EstimatorBase):
         """Outliers and bias per anchor, mixture parameters, update latency, re-anchors.
 
         `covariance_ms`: time of the pose marginals, per update (isam2: the newest
-        keyframe's), per keyframe (isam2-smoothed) or once (batch: all keyframes)."""
+        keyframe's) or once (isam2-smoothed, batch: all keyframes)."""
         out: dict[str, Any] = {"method": self.method.value}
         out["standstill_fix_epochs"] = self.init.standstill_epochs
         b = self.builder
@@ -844,14 +825,15 @@ class GraphEstimator(EstimatorBase):
             mix = self._batch.mixture
             bias = np.array([self._batch.values.atDouble(D(a)) for a in range(len(self.anchors))]
                             ) if b.with_bias else np.zeros(len(self.anchors))
-            out["batch"] = {"em_rounds": self._batch.rounds,
+            key = FULL_GRAPH_REPORT[self.method]
+            out[key] = {"em_rounds": self._batch.rounds,
                             "lm_iterations": self._batch.lm_iterations,
                             "em_start": "nlos-first" if self._batch.nlos_first else "online",
                             "range_model": self._batch.range_model,
                             "heldout_log_score": self._batch.heldout_score,
                             "wall_s": self._batch_wall}
             if self._batch.wheel_scale is not None:
-                out["batch"]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
+                out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}
             scale = self._batch.scale
         else:
