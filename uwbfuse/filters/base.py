@@ -504,13 +504,12 @@ class StreamingFilter:
     def bias_decay(self, t: float) -> tuple[F64, F64]:
         """First-order Gauss-Markov range biases over t seconds: the factor f (M,) on each
         bias and the variance (M,) m^2 of the noise added. Correlation time `bias_tau`
-        (`[graph] nlos_tau`, s); stationary variance p_a nlos_std^2 + p_a (1 - p_a)
-        nlos_mean^2 (the spread of the excess about the mean p_a nlos_mean that each range
-        has taken off), with p_a the anchor's current NLOS probability (its chain state in
-        `RangeNoise`) and nlos_mean, nlos_std those of the mixture fitted to the log's
-        innovations: a LOS anchor's bias is held (its ranges count at the radio's noise),
-        an anchor behind an obstacle gets a slow excess of the fitted size, so its tens of
-        ranges a second do not count as independent evidence."""
+        (`[graph] nlos_tau`, s); stationary variance p_a x nlos_std^2, with p_a the
+        anchor's current NLOS probability (its chain state in `RangeNoise`) and nlos_std
+        the NLOS spread of the mixture fitted to the log's innovations: a LOS anchor's bias
+        is held (its ranges count at the radio's noise), an anchor behind an obstacle gets
+        a slow excess of the fitted size, so its tens of ranges a second do not count as
+        independent evidence."""
         f = np.full(self.n_bias, math.exp(-t / self.bias_tau))
         if self.scale_state:
             f[-1] = 1.0
@@ -521,10 +520,7 @@ class StreamingFilter:
         """Stationary variance (M,) m^2 of each anchor's range bias now (`bias_decay`)."""
         if not self.n_bias:
             return np.zeros(0)
-        m, p = self.range_noise.model, self.range_noise.p_last
-        # the variance of the mixture excess about its mean p nlos_mean (the mean is taken
-        # off each range, `RangeNoise.weigh`): p nlos_std^2 + p (1 - p) nlos_mean^2
-        var = p * m.nlos_std**2 + p * (1.0 - p) * m.nlos_mean**2
+        var = self.range_noise.p_last * self.range_noise.model.nlos_std**2
         if self.scale_state:
             var = np.append(var, self.config.graph.range_scale_sigma**2)
         return var
