@@ -160,6 +160,8 @@ class StreamingFilter(EstimatorBase):
     #: anchor's ranges share a slowly varying error (antenna delay, the slow part of an
     #: NLOS excess) that independent per-range noise cannot describe.
     RANGE_BIAS = False
+    #: ... and, with them, the common range-scale error state (`scale_state`).
+    RANGE_SCALE = True
     #: External poses gated without a break for longer than this (ns) mean the state is
     #: off (drifted through a pose dropout on too tight a covariance), not the localiser:
     #: its wrong matches last a second or two. The covariance is then widened
@@ -210,7 +212,7 @@ class StreamingFilter(EstimatorBase):
         # (1.025-1.033 and 0.973 on room-static logs without scale error) and its start
         # position with it, so the filter estimates the scale with the position rather than
         # keep it (a regression on its own predicted distances cannot undo it)
-        self.scale_state = self.RANGE_BIAS and held and len(anchors) > 0
+        self.scale_state = self.RANGE_BIAS and self.RANGE_SCALE and held and len(anchors) > 0
         self.n_bias = (len(anchors) + int(self.scale_state)) if self.RANGE_BIAS and held else 0
         self.rbias: F64 = np.zeros(self.n_bias)
         self.bias_tau = config.graph.nlos_tau

@@ -21,9 +21,12 @@ mass with UWB position fixes and no LiDAR here):
   the wheels.
 - UWB ranges are scalar measurements (tag lever arm included), each weighted and gated
   on its innovation and predicted variance as in the EKF (`adaptive_noise.RangeNoise`),
-  then updated together; wheel speeds are base-frame velocity measurements (forward v, zero
-  lateral/vertical speed); soft planar height and roll/pitch constraint with wheels, as in
-  the EKF.
+  then updated together; where the tag height is held (wheels) the state carries the
+  EKF's per-anchor range biases (`base.StreamingFilter`: `RANGE_BIAS`, `bias_decay`),
+  drawn as sigma points with the rest, but not its common range-scale state (with it the
+  UKF did better on the real logs but missed three of its tests: docs/results.md);
+  wheel speeds are base-frame velocity measurements (forward v, zero lateral/vertical
+  speed); soft planar height and roll/pitch constraint with wheels, as in the EKF.
 
 Windows: as in the EKF, the time since the last step is cut into windows of at most 0.1 s.
 One sigma-point set is drawn at the window start and propagated through the window; every
@@ -53,6 +56,7 @@ from uwbfuse.filters.models import (
     P_,
     TH,
     V_,
+    augment,
     mechanise,
     so3_exp,
     so3_log,
@@ -147,7 +151,7 @@ class ErrorStateUkf(ErrorStateEkf):
     linearisation by sigma points.
     """
 
-    RANGE_BIAS = False  # not (yet) in the sigma-point update
+    RANGE_SCALE = False  # range biases, no common scale state (module docstring)
 
     def __init__(
         self,
@@ -158,7 +162,7 @@ class ErrorStateUkf(ErrorStateEkf):
     ) -> None:
         super().__init__(config, anchors, streams, initialiser)
         u = config.ukf
-        self.weights = MerweWeights(N_ERR, u.alpha, u.beta, u.kappa)
+        self.weights = MerweWeights(self.n_x, u.alpha, u.beta, u.kappa)
 
     def _window(
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
@@ -171,7 +175,7 @@ class ErrorStateUkf(ErrorStateEkf):
             nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
-        off = self.weights.offsets(self.P)                      # (S,15)
+        off = self.weights.offsets(self.P)                      # (S,15 + biases)
         r0 = so3_exp(off[:, TH]) @ self.R
         rs, vs, ps, _ = mechanise(
             r0, self.v + off[:, V_], self.p + off[:, P_], self.bg + off[:, BG],
@@ -185,10 +189,16 @@ class ErrorStateUkf(ErrorStateEkf):
         ex[:, TH] = so3_log(rs[:, -1] @ rs[0, -1].T)
         ex[:, BG] = off[:, BG]
         ex[:, BA] = off[:, BA]
+        nb = self.n_bias
+        if nb:  # per-anchor range biases (Gauss-Markov): the EKF's model
+            f, qb = self.bias_decay(t)
+            bias = self.rbias + off[:, N_ERR:]              # at the window start
+            ex[:, N_ERR:] = off[:, N_ERR:] * f
         wts = self.weights
         ex_mean = wts.wm @ ex
         dxx = ex - ex_mean
-        p_prior = (dxx.T * wts.wc) @ dxx + self._q(t)
+        q = self._q(t)
+        p_prior = (dxx.T * wts.wc) @ dxx + (augment(q, qb) if nb else q)
         zs: list[F64] = []
         zm: list[F64] = []
         rv: list[F64] = []
@@ -196,7 +206,10 @@ class ErrorStateUkf(ErrorStateEkf):
         if nr:
             k = kidx[:nr]
             d = ps[:, k] + rs[:, k] @ self.tag_b - self.anchor_pos[ra]
-            zs.append(np.sqrt(np.einsum("smi,smi->sm", d, d)))
+            dist = np.sqrt(np.einsum("smi,smi->sm", d, d))
+            if nb:
+                dist = dist + bias[:, ra]
+            zs.append(dist)
             zm.append(rr)
             rv.append(np.zeros(nr))  # replaced by the range noise's weights
         if nw:
@@ -224,7 +237,9 @@ class ErrorStateUkf(ErrorStateEkf):
             self.nis = nis
         self.P = p_prior
         self.R, self.v, self.p = rs[0, -1], vs[0, -1], ps[0, -1]
-        self._inject(corr)
+        self._inject(corr[:N_ERR])
+        if nb:
+            self.rbias = f * self.rbias + corr[N_ERR:]
         return used
 
     def _q(self, t: float) -> F64:
@@ -245,7 +260,7 @@ class ErrorStateUkf(ErrorStateEkf):
 class UnicycleUkf(UnicycleEkf):
     """UKF on the planar unicycle (x, y, yaw) driven by wheel odometry: the paper's eq. 3."""
 
-    RANGE_BIAS = False  # not (yet) in the sigma-point update
+    RANGE_SCALE = False  # range biases, no common scale state (module docstring)
 
     def __init__(
         self,
@@ -256,7 +271,7 @@ class UnicycleUkf(UnicycleEkf):
     ) -> None:
         super().__init__(config, anchors, streams, initialiser)
         u = config.ukf
-        self.weights = MerweWeights(3, u.alpha, u.beta, u.kappa)
+        self.weights = MerweWeights(3 + self.n_bias, u.alpha, u.beta, u.kappa)
 
     def _window(
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
@@ -266,13 +281,21 @@ class UnicycleUkf(UnicycleEkf):
         nr = len(rt)
         v, w, dt, k = self.wheel_grid(t_b, rt)
         off = self.weights.offsets(self.P)
-        pts = self.x + off
+        pts = self.x + off[:, :3]
         xb, yb, yawb, mid = unicycle_track(pts[:, 0], pts[:, 1], pts[:, 2], v, w, dt)
         _, q = unicycle_transition(
             np.diff(xb[0]), np.diff(yb[0]), v, dt, mid[0], self.sigma_v, self.sigma_w
         )
-        ex = np.stack([xb[:, -1] - xb[0, -1], yb[:, -1] - yb[0, -1],
-                       yawb[:, -1] - yawb[0, -1]], axis=1)
+        ex = np.zeros_like(off)
+        ex[:, 0] = xb[:, -1] - xb[0, -1]
+        ex[:, 1] = yb[:, -1] - yb[0, -1]
+        ex[:, 2] = yawb[:, -1] - yawb[0, -1]
+        nb = self.n_bias
+        if nb:  # per-anchor range biases (Gauss-Markov): the EKF's model
+            f, qb = self.bias_decay(float(dt.sum()))
+            bias = self.rbias + off[:, 3:]                  # at the window start
+            ex[:, 3:] = off[:, 3:] * f
+            q = augment(q, qb)
         wts = self.weights
         ex_mean = wts.wm @ ex
         dxx = ex - ex_mean
@@ -287,13 +310,17 @@ class UnicycleUkf(UnicycleEkf):
             dy_ = yb[:, k] + sy * tx + cy * ty - a[:, 1]
             dz_ = self.z0 + tz - a[:, 2]
             zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
+            if nb:
+                zs = zs + bias[:, ra]
             corr, p_prior, y, used, self.nis, self.short = _unscented_update(
                 wts, ex, zs, rr, np.zeros(nr), p_prior, self.range_noise, ra,
                 evidence=self.range_evidence(rt, ra),
             )
             self.y = y
         self.P = p_prior
-        self.x = np.array([xb[0, -1], yb[0, -1], yawb[0, -1]]) + corr
+        self.x = np.array([xb[0, -1], yb[0, -1], yawb[0, -1]]) + corr[:3]
+        if nb:
+            self.rbias = f * self.rbias + corr[3:]
         return used
 
 
