@@ -22,12 +22,16 @@ def arc_steps(v: np.ndarray, dt: np.ndarray, yaw0: np.ndarray | float,
     """(dx, dy), m, of constant-velocity arcs: speed v m/s for dt s while the heading
     turns by dyaw rad from yaw0 rad, in the frame yaw0 is measured in (broadcasting).
 
-    The project's one wheel integrator: each arc is exactly its chord, of length
-    v dt sinc(dyaw / 2), at the heading halfway through the turn.
+    The project's one wheel integrator, exact for a constant twist: in the arc's own
+    frame (s sin(th) / th, s (1 - cos(th)) / th) for path length s = v dt, turned by yaw0.
     """
-    chord = v * dt * np.sinc(dyaw / (2.0 * np.pi))  # np.sinc(x) = sin(pi x) / (pi x)
-    mid = yaw0 + 0.5 * dyaw
-    return chord * np.cos(mid), chord * np.sin(mid)
+    s = v * dt
+    small = np.abs(dyaw) < 1e-6  # rad: below it the series (error ~ th^4) replaces 0 / 0
+    th_safe = np.where(small, 1.0, dyaw)
+    lx = np.where(small, s * (1.0 - dyaw * dyaw / 6.0), s * np.sin(th_safe) / th_safe)
+    ly = np.where(small, s * dyaw / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
+    c, sn = np.cos(yaw0), np.sin(yaw0)
+    return c * lx - sn * ly, sn * lx + c * ly
 
 
 def _arcs(v: np.ndarray, w: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, ...]:
