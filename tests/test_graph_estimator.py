@@ -294,6 +294,21 @@ def test_batch_calibrates_a_wheel_speed_scale_error():
     assert ate_on < 0.75 * ate_off
 
 
+def test_batch_fits_the_wheel_time_offset():
+    """Test that batch finds wheel stamps that run early against the ranges (the
+    simulated encoders' stamps moved 15 ms earlier, 3/4 of their 20 ms period) and none
+    where there is none.
+
+    Measured (factory, seed 0, 60 s): 0.0138 s and -0.00006 s."""
+    sim = simulate_with_truth("factory", 60.0, 0)
+    w = sim.log.wheel
+    early = replace(sim.log, wheel=replace(w, t_ns=w.t_ns - round(0.015 * NS_PER_S)))
+    found = estimate(early, Method.BATCH, Config()).report["batch"]["wheel_time_offset_s"]
+    none = estimate(sim.log, Method.BATCH, Config()).report["batch"]["wheel_time_offset_s"]
+    assert found == pytest.approx(0.015, abs=0.004)
+    assert none == pytest.approx(0.0, abs=0.004)
+
+
 def test_batch_on_a_mostly_static_room_keeps_the_range_scale_off():
     """Test that the room-static log (20 s dwells; the graph starts at 54 s, once the tag has
     moved) does not take the start solve's 2.5 % range scale for the radios'.

@@ -72,7 +72,8 @@ def test_heavy_nlos_simulation_chooses_the_mixture():
     gt = sim.log.ground_truth
     a = evaluate(auto.trajectory, gt, max_dt=0.02).ate_2d.rmse
     m = evaluate(mixture.trajectory, gt, max_dt=0.02).ate_2d.rmse
-    assert a == pytest.approx(m, abs=1e-6)
+    # (0.1 mm: the wheel time offset is fitted from each run's own online pass)
+    assert a == pytest.approx(m, abs=1e-4)
 
 
 def test_a_configured_range_model_is_fitted_without_the_choice():

@@ -698,6 +698,33 @@ class GraphBuilder:
             self.imu.drop_before(t_a)
         return inc
 
+    def complete_wheel_records(self, offset_ns: int = 0) -> None:
+        """batch, once the whole log is in: the recorded wheel factors and the ranges' tag
+        offsets from the complete wheel track.
+
+        A keyframe is built as soon as the data up to its time are in, but a wheel sample is
+        the mean over the interval that ends at its stamp: the sample covering the end of
+        the keyframe interval (and the later ranges of it) arrives after the keyframe, so
+        the online factors extrapolate the previous sample's velocity over that stretch.
+        Offline the sample is there; a wrong extrapolation (a change of speed, a sample
+        stamped late) otherwise stays in batch's graph (docs/results.md, "Plaza").
+        `offset_ns`: the wheel stamps lag the range clock by this (the track at range time
+        t is the wheel track at t - offset)."""
+        if not (self.record and self.has_wheel and len(self.wheel)) or self.full_graph is None:
+            return
+        wr = self.wheel_records
+        for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
+            t_a, t_b = self.time_of(ka) - offset_ns, self.time_of(ka + 1) - offset_ns
+            wr.delta[j] = self.wheel.between(t_a, t_b)
+            wr.cov[j] = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
+            self.full_graph.replace(idx, between_factor(
+                X(ka), X(ka + 1), wr.delta[j], wr.cov[j], wr.out_of_plane, WHEEL_HUBER_K))
+        rec = self.records
+        for j, (ks, t) in enumerate(zip(rec.k, rec.t_ns, strict=True)):
+            if len(ks):
+                rec.tag_in_kf[j] = self.tag_in_keyframe(
+                    self.time_of(int(ks[0])) - offset_ns, t - offset_ns, self.pose, self.vel)
+
     def _add_ranges(
         self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
     ) -> None:

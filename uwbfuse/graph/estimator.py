@@ -141,6 +141,7 @@ class GraphEstimator(EstimatorBase):
         self._hyp_key: tuple | None = None
         self._hyp_count = 0
         self._batch_wall = 0.0
+        self._wheel_offset_s: float | None = None  # batch: the wheel time offset chosen, s
         self._static: PoseEstimate | None = None  # standstill fix before the start
         # pose covariances (ROS order, map axes; `graph.marginal_covariances`): the newest
         # solved keyframe's (time, position, covariance, velocity covariance) that the
@@ -659,6 +660,7 @@ class GraphEstimator(EstimatorBase):
     def _run_batch(self) -> None:
         b = self.builder
         assert b is not None
+        self._complete_wheel_records()
         graph, initial, rec = self.batch_inputs()
         self._batch = offline.solve(self.cfg, graph, initial, rec,
                                     self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
@@ -666,6 +668,37 @@ class GraphEstimator(EstimatorBase):
                                     wheel=b.wheel_records,
                                     online_verdict=b.prequential_verdict(),
                                     planar=b.planar)
+
+    def _complete_wheel_records(self) -> None:
+        """batch: the wheel factors from the complete track (`complete_wheel_records`), at
+        the wheel-to-range time offset that fits best: the maximum-likelihood one over
+        -1 .. +1 wheel periods in half periods (which interval a sample covers is what
+        logs disagree on), each scored by the error after one Huber LM of the recorded
+        graph with the ranges at the online robust sigma (`offline.motion_fit_error`)."""
+        b = self.builder
+        assert b is not None
+        if not (b.has_wheel and len(self.wheel) > 1):
+            b.complete_wheel_records()
+            return
+        period = float(np.median(np.diff(self.wheel.t)))
+        steps = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+        errs = np.empty(len(steps))
+        for i, f in enumerate(steps.tolist()):
+            b.complete_wheel_records(round(f * period))
+            graph, initial, rec = self.batch_inputs()
+            errs[i] = offline.motion_fit_error(self.cfg, graph, initial, rec,
+                                               b.scale if b.with_scale else None,
+                                               b.robust_sigma(), b.with_bias)
+        i = int(np.argmin(errs))
+        f = float(steps[i])
+        if 0 < i < len(steps) - 1:  # the vertex of the parabola through the best three
+            e0, e1, e2 = errs[i - 1], errs[i], errs[i + 1]
+            curv = e0 - 2.0 * e1 + e2
+            if curv > 0:
+                f += 0.25 * (e0 - e2) / curv
+        log.debug("batch wheel time offset: errors %s at %s periods -> %.3f", errs, steps, f)
+        self._wheel_offset_s = float(f * period / NS_PER_S)
+        b.complete_wheel_records(round(f * period))
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
@@ -832,6 +865,8 @@ class GraphEstimator(EstimatorBase):
                             "range_model": self._batch.range_model,
                             "heldout_log_score": self._batch.heldout_score,
                             "wall_s": self._batch_wall}
+            if self._wheel_offset_s is not None:
+                out["batch"]["wheel_time_offset_s"] = self._wheel_offset_s
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}

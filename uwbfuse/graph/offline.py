@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from uwbfuse.config import Config, UwbConfig
+from uwbfuse.config import Config, RobustKernel, UwbConfig
 from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_sigma
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
@@ -900,3 +900,28 @@ def refit_scale(
     if common:
         num[:], den[:] = num[0], den[0]
     scale[:] = np.clip((1.0 + scale) * (1.0 + num / (den + lam)) - 1.0, -0.2, 0.2)
+
+
+def motion_fit_error(
+    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+    rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
+) -> float:
+    """Graph error after one Huber LM of `base_graph` plus every recorded range (scale
+    corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
+    `initial`: a negative log-likelihood (up to a constant) to compare motion factors
+    built differently by."""
+    graph = gtsam.NonlinearFactorGraph(base_graph)
+    a = rec["anchor"].astype(np.int64)
+    z = rec["z"] / (1.0 + scale[a]) if scale is not None else rec["z"]
+    noise = range_noise(sigma, RobustKernel.HUBER, cfg.uwb.kernel_threshold)
+    for k, aa, zz, tag in zip(rec["k"].tolist(), a.tolist(), z.tolist(),
+                              np.asarray(rec["tag_in_kf"], float), strict=True):
+        graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
+                                     gtsam.Pose3(gtsam.Rot3(), tag)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.graph.lm_max_iterations)
+    params.setRelativeErrorTol(LM_RELATIVE_TOL)
+    params.setAbsoluteErrorTol(1e-6)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    opt.optimize()
+    return float(opt.error())
