@@ -866,7 +866,7 @@ class GraphEstimator(EstimatorBase):
                             "heldout_log_score": self._batch.heldout_score,
                             "wall_s": self._batch_wall}
             if self._wheel_offset_s is not None:
-                out["batch"]["wheel_time_offset_s"] = self._wheel_offset_s
+                out[key]["wheel_time_offset_s"] = self._wheel_offset_s
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}
