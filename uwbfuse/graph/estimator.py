@@ -216,10 +216,9 @@ class GraphEstimator(EstimatorBase):
         an IMU and no wheels: `_backdated_imu`); `state` itself with neither or when there
         is nothing to gain.
 
-        Off by default: isam2 2-D ATE, 6 seeds x 120 s, backdate 0 -> 10 s: room 0.0176 ->
-        0.0128 m, but factory 0.058 -> 0.067, warehouse 0.101 -> 0.107 and warehouse-nlos
-        0.217 -> 0.230 m: where the start is poor (NLOS, three anchors) the buffered ranges
-        are classified against a poor prediction and pull the track.
+        Off by default for the online pass: where the start is poor (NLOS, three anchors)
+        the buffered ranges are classified against a poor prediction and pull the track
+        (docs/results.md, "Backdated starts"); the whole-log refit turns it on.
         """
         w = self.wheel
         back_ns = round(self.cfg.graph.start_backdate * NS_PER_S)
@@ -670,11 +669,12 @@ class GraphEstimator(EstimatorBase):
                                     planar=b.planar)
 
     def _complete_wheel_records(self) -> None:
-        """batch: the wheel factors from the complete track (`complete_wheel_records`), at
-        the wheel-to-range time offset that fits best: the maximum-likelihood one over
-        -1 .. +1 wheel periods in half periods (which interval a sample covers is what
-        logs disagree on), each scored by the error after one Huber LM of the recorded
-        graph with the ranges at the online robust sigma (`offline.motion_fit_error`)."""
+        """The offline solve's wheel factors from the complete track
+        (`complete_wheel_records`), at the wheel-to-range time offset that fits best: the
+        maximum-likelihood one over -1 .. +1 wheel periods in half periods (which interval
+        a sample covers is what logs disagree on), each scored by the error after one Huber
+        LM of the recorded graph with the ranges at the online robust sigma
+        (`offline.motion_fit_error`)."""
         b = self.builder
         assert b is not None
         if not (b.has_wheel and len(self.wheel) > 1):
@@ -860,11 +860,11 @@ class GraphEstimator(EstimatorBase):
                             ) if b.with_bias else np.zeros(len(self.anchors))
             key = FULL_GRAPH_REPORT[self.method]
             out[key] = {"em_rounds": self._batch.rounds,
-                            "lm_iterations": self._batch.lm_iterations,
-                            "em_start": "nlos-first" if self._batch.nlos_first else "online",
-                            "range_model": self._batch.range_model,
-                            "heldout_log_score": self._batch.heldout_score,
-                            "wall_s": self._batch_wall}
+                        "lm_iterations": self._batch.lm_iterations,
+                        "em_start": "nlos-first" if self._batch.nlos_first else "online",
+                        "range_model": self._batch.range_model,
+                        "heldout_log_score": self._batch.heldout_score,
+                        "wall_s": self._batch_wall}
             if self._wheel_offset_s is not None:
                 out[key]["wheel_time_offset_s"] = self._wheel_offset_s
             if self._batch.wheel_scale is not None:
