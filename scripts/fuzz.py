@@ -668,7 +668,7 @@ def gen_config(i: int, rng: random.Random, bases: Bases, case_dir: Path) -> Case
         kind = f"anchor={val}"
     elif kind == "nlos-anchor":
         val = rng.choice(["[nan, 0.1, 0.1, 0.5]", "[inf, 1, 1, 1]", "[1, 2]"])
-        cfg.write_text(base + f'\n[wls.anchor_nlos]\n"A1" = {val}\n')
+        cfg.write_text(base + f'\n[nlos.anchor]\n"A1" = {val}\n')
         must_reject = True
         kind = f"anchor_nlos={val}"
     elif kind == "not-utf8":

@@ -30,7 +30,7 @@ from uwbfuse.config import Config
 from uwbfuse.estimator import Method
 from uwbfuse.eval.evaluate import evaluate
 from uwbfuse.pipeline import estimate
-from uwbfuse.positioning.nlos_model import calibrate_nlos
+from uwbfuse.positioning.nlos_weighting import calibrate_nlos
 from uwbfuse.sim.simulator import simulate, simulate_with_truth
 
 QIU_TABLE2 = (  # point (x, y) m, paper RMSE trilateral, weighted (m)
@@ -64,7 +64,7 @@ def table2(seeds: int) -> str:
     configs = {
         "plain LS": Config(wls={"weighted": False}),
         "WLS (paper model)": Config(),
-        "WLS (calibrated)": Config(wls=cal.to_toml()),
+        "WLS (calibrated)": Config(nlos=cal.per_range_toml()),
     }
     errs: dict[str, list[list[np.ndarray]]] = {k: [[] for _ in QIU_TABLE2] for k in configs}
     for seed in range(seeds):

@@ -10,7 +10,7 @@ from uwbfuse.io.writer import write_contract_log
 from uwbfuse.sim.simulator import simulate
 
 
-def test_calibrate_nlos_writes_a_usable_wls_table(tmp_path: Path) -> None:
+def test_calibrate_nlos_writes_a_usable_nlos_table(tmp_path: Path) -> None:
     """test that calibrate-nlos recovers the simulated NLOS bias and writes valid config"""
     log_path = tmp_path / "cal.mcap"
     write_contract_log(log_path, simulate("warehouse-nlos", duration_s=90.0, seed=11))
@@ -19,9 +19,9 @@ def test_calibrate_nlos_writes_a_usable_wls_table(tmp_path: Path) -> None:
     data = tomllib.loads(out.read_text())
     cfg = config_from_dict(data)
     # warehouse-nlos draws NLOS excess from N(0.3, 0.15) m, LOS noise sigma 0.05 m.
-    assert cfg.wls.nlos_mean == pytest.approx(0.3, abs=0.08)
-    assert cfg.wls.los_std == pytest.approx(0.05, abs=0.03)
-    assert set(cfg.wls.anchor_nlos) == {"A1", "A2", "A3", "A4"}
+    assert cfg.nlos.range_nlos_mean == pytest.approx(0.3, abs=0.08)
+    assert cfg.nlos.range_los_std == pytest.approx(0.05, abs=0.03)
+    assert set(cfg.nlos.anchor) == {"A1", "A2", "A3", "A4"}
 
 
 def test_calibrate_nlos_without_ground_truth_is_one_line(

@@ -144,3 +144,31 @@ def test_sections_of_earlier_releases_move_with_a_warning(tmp_path, caplog):
     p.write_text("[ekf]\ngating = false\n[filter]\ngating = true\n")
     with pytest.raises(ConfigError, match="given twice"):
         load_config(p)
+
+
+def test_nlos_keys_of_earlier_releases_move_to_the_one_nlos_model(tmp_path, caplog):
+    """Test that the graph's and wls's NLOS keys of earlier releases load into `[nlos]`
+    (with a warning each) and reach the one model the graph, wls and the filters read."""
+    import logging
+
+    from uwbfuse.config import load_config
+    from uwbfuse.errors import ConfigError
+    from uwbfuse.nlos import NlosModel, NlosParams
+
+    p = tmp_path / "old.toml"
+    p.write_text("[graph]\nnlos_mean = 0.25\nnlos_sigma = 0.06\nnlos_slow_sigma = 0.12\n"
+                 "nlos_tau = 4.0\nnlos_segment = 0.5\nnlos_rate = 0.4\nnlos_switch = 0.1\n"
+                 "[wls]\nlos_std = 0.03\nnlos_mean = 0.2\nnlos_std = 0.16\nnlos_prior = 0.3\n"
+                 "[wls.anchor_nlos]\nA1 = [0.02, 0.3, 0.2, 0.5]\n")
+    with caplog.at_level(logging.WARNING):
+        cfg = load_config(p)
+    assert "[graph] nlos_mean is now [nlos] excess_mean" in caplog.text
+    assert "[wls] anchor_nlos is now [nlos] anchor" in caplog.text
+    m = NlosModel.from_config(cfg)
+    assert (m.sigma_los, m.sigma_nlos, m.mu_nlos, m.sigma_slow, m.tau_s, m.segment_s,
+            m.p_nlos, m.p_switch) == (cfg.uwb.sigma, 0.06, 0.25, 0.12, 4.0, 0.5, 0.4, 0.1)
+    assert m.per_range == NlosParams(0.03, 0.2, 0.16, 0.3)
+    assert m.per_anchor == {"A1": NlosParams(0.02, 0.3, 0.2, 0.5)}
+    p.write_text("[graph]\nnlos_tau = 4.0\n[nlos]\ntau = 5.0\n")
+    with pytest.raises(ConfigError, match="given twice"):
+        load_config(p)

@@ -12,7 +12,8 @@ from uwbfuse.config import Config
 from uwbfuse.estimator import Method
 from uwbfuse.graph.covariance import blend, carry, to_map
 from uwbfuse.graph.offline import observed_information_share
-from uwbfuse.graph.uwb import NlosModel, los_subset_search
+from uwbfuse.graph.uwb import los_subset_search
+from uwbfuse.nlos import NlosModel
 from uwbfuse.pipeline import estimate
 from uwbfuse.sim.simulator import SimResult, simulate_with_truth
 from uwbfuse.streams import UNKNOWN_VARIANCE, PoseStream
@@ -98,7 +99,7 @@ def test_shift_moment_grows_with_the_los_nlos_ambiguity() -> None:
     anchor reads 0.2 m long (NLOS or a shifted track: the data cannot tell well) a spread
     of the size of the shift"""
     cfg = Config()
-    mix = NlosModel.from_config(cfg.uwb, cfg.graph)
+    mix = NlosModel.from_config(cfg)
     rng = np.random.default_rng(0)
     ang = np.array([0.3, 1.9, 3.5, 5.0])  # four anchors around the tag
     anchor = np.repeat(np.arange(4), 40)

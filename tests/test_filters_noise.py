@@ -1,6 +1,6 @@
 # SPDX-License-Identifier: BSD-3-Clause
 """The filters' measurement noise from the log (`uwbfuse.filters.adaptive_noise`) and the
-EM fit of the NLOS model it uses (`positioning.nlos_model.fit_nlos_mixture`)."""
+EM fit of the NLOS model it uses (`nlos.fit_nlos_mixture`)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from uwbfuse.filters.adaptive_noise import (
     sequential_ranges,
 )
 from uwbfuse.filters.models import joseph_update
-from uwbfuse.positioning.nlos_model import NlosParams, fit_nlos_mixture
+from uwbfuse.nlos import NlosParams, fit_nlos_mixture
 
 
 def test_em_recovers_the_mixture_from_residuals() -> None:

@@ -9,19 +9,19 @@ import numpy as np
 import pytest
 
 from uwbfuse.config import RobustKernel, WheelConfig
-
-gtsam = pytest.importorskip("gtsam")
-
-from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
-from uwbfuse.graph.uwb import (  # noqa: E402
+from uwbfuse.nlos import (
     NlosModel,
     hmm_filter,
     hmm_smooth,
     jump_log_likelihoods,
-    los_subset_search,
     residual_jumps,
     residual_jumps_by_anchor,
 )
+
+gtsam = pytest.importorskip("gtsam")
+
+from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
+from uwbfuse.graph.uwb import los_subset_search  # noqa: E402
 from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
 
 NS = 1_000_000_000

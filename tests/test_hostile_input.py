@@ -427,7 +427,7 @@ def test_json_wheel_messages_with_bad_fields(tmp_path: Path, stamp: object, v: o
 
 @pytest.mark.parametrize("text", [
     "[uwb]\nsigma = nan\n", "[uwb]\nsigma = inf\n", "[wls]\nwindow = -inf\n",
-    "[uwb.range_offset]\nA0 = nan\n", "[wls.anchor_nlos]\nA0 = [nan, 0.1, 0.1, 0.5]\n",
+    "[uwb.range_offset]\nA0 = nan\n", "[nlos.anchor]\nA0 = [nan, 0.1, 0.1, 0.5]\n",
     "[wheel]\ntrack_width = \"0.5\"\n", "[wheel]\ntrack_width = true\n",
     "[output]\nrate = 1e-320\n", "[graph]\nlag = 1e300\n", "[anchors]\nA0 = [true, 1, 2]\n",
     "[ukf]\nbeta = inf\n",

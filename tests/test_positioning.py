@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from tests.synth_positioning import ROOM
 from uwbfuse.config import Config, RobustKernel
+from uwbfuse.nlos import NlosModel, NlosParams, nlos_probability
 from uwbfuse.positioning.multilateration import (
     epochs_by_window,
     gauss_newton,
@@ -18,13 +21,7 @@ from uwbfuse.positioning.multilateration import (
     robust_weights,
     select_nearest,
 )
-from uwbfuse.positioning.nlos_model import (
-    NlosModel,
-    NlosParams,
-    calibrate_nlos,
-    nlos_probability,
-    weighted_fix,
-)
+from uwbfuse.positioning.nlos_weighting import calibrate_nlos, weighted_fix
 from uwbfuse.streams import AnchorMap
 
 A3D = np.vstack([ROOM.positions, [[2.5, 3.0, 3.0]]])  # one anchor off the plane
@@ -155,10 +152,10 @@ def test_weighted_ls_beats_plain_ls_on_nlos_ranges(point: tuple[float, float]) -
     far = int(np.argmax(true))
     r[:, far] += rng.normal(0.114, 0.145, n)
     plain, _ = linear_ls(anchors.positions[:, :2], project_ranges(r, anchors.positions[:, 2], 0.3))
-    base = NlosModel.from_config(Config().wls)
+    base = NlosModel.from_config(Config())
     # The calibrated model of Qiu: the obstructed anchor has a high NLOS probability.
     per = {anchors.ids[far]: NlosParams(0.026, 0.114, 0.145, 0.95)}
-    model = NlosModel(base.default, per)
+    model = replace(base, per_anchor=per)
     wf = weighted_fix(anchors, r, model, dim=2, tag_z=0.3)
     rmse_plain = np.sqrt(np.mean(np.sum((plain - p[:2]) ** 2, axis=1)))
     rmse_w = np.sqrt(np.mean(np.sum((wf.fixes.position[:, :2] - p[:2]) ** 2, axis=1)))
@@ -174,9 +171,10 @@ def test_calibrate_nlos_recovers_simulated_distributions() -> None:
     res = simulate_with_truth("warehouse-nlos", 90.0, 3)
     cfg = Config()
     model = calibrate_nlos(res.log, cfg)
-    toml = model.to_toml()
-    assert set(toml) == {"los_std", "nlos_mean", "nlos_std", "nlos_prior", "anchor_nlos"}
-    Config(wls=toml)  # TOML-ready: validates as [wls]
+    toml = model.per_range_toml()
+    assert set(toml) == {"range_los_std", "range_nlos_mean", "range_nlos_std",
+                         "range_nlos_prior", "anchor"}
+    Config(nlos=toml)  # TOML-ready: validates as [nlos]
     rs = res.log.ranges
     assert rs is not None and res.log.anchors is not None
     good = ~res.outlier

@@ -18,7 +18,7 @@ from uwbfuse.filters.lkf import ConstantVelocityKF
 from uwbfuse.filters.lkf import make as make_lkf
 from uwbfuse.filters.wls import make as make_wls
 from uwbfuse.pipeline import estimate
-from uwbfuse.positioning.nlos_model import calibrate_nlos
+from uwbfuse.positioning.nlos_weighting import calibrate_nlos
 from uwbfuse.streams import SensorLog
 
 
@@ -83,9 +83,9 @@ def test_lkf_accel_psd_sets_how_smooth_its_track_is() -> None:
 
 
 def test_calibrated_nlos_model_helps_in_heavy_nlos() -> None:
-    """test that [wls] values from calibrate-nlos on one log improve WLS on another"""
+    """test that [nlos] values from calibrate-nlos on one log improve WLS on another"""
     model = calibrate_nlos(_sim("warehouse-nlos", 40.0, 7), Config())
-    cfg = Config(wls=model.to_toml())
+    cfg = Config(nlos=model.per_range_toml())
     log = _sim("warehouse-nlos", 40.0, 0)
     # Measured (120 s): default 0.43-0.44 m, calibrated 0.20-0.25 m.
     assert _ate(log, "wls", cfg) < 0.7 * _ate(log, "wls")

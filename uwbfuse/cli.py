@@ -158,7 +158,7 @@ def _cmd_train_nlos(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate_nlos(args: argparse.Namespace) -> int:
-    from uwbfuse.positioning.nlos_model import calibrate_nlos_file
+    from uwbfuse.positioning.nlos_weighting import calibrate_nlos_file
 
     text = calibrate_nlos_file(args.log, config_path=args.config, gt_path=args.gt)
     if args.output:

@@ -298,28 +298,6 @@ class GraphConfig(_Section):
         "factors (wheel radius and track errors) against the smoothed track"
     )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
-    nlos_mean: float = Field(
-        0.3, gt=0, description="mean NLOS range excess over the anchor's LOS offset, metres"
-    )
-    nlos_slow_sigma: float = Field(
-        0.13, gt=0, description="std of the slowly varying NLOS excess of an anchor, metres"
-    )
-    nlos_sigma: float = Field(
-        0.07, gt=0, description="std of the fast (per-range) part of the NLOS excess, metres"
-    )
-    nlos_tau: float = Field(
-        5.0, gt=0, description="correlation time of an anchor's NLOS excess, seconds"
-    )
-    nlos_segment: float = Field(
-        1.0, gt=0, description="time step of the per-anchor NLOS excess states, seconds"
-    )
-    nlos_rate: float = Field(
-        0.3, gt=0, lt=1, description="prior fraction of NLOS ranges (EM-adapted)"
-    )
-    nlos_switch: float = Field(
-        0.05, gt=0, lt=1, description="probability that an anchor's LOS/NLOS state changes "
-        "between two of its ranges"
-    )
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
     )
@@ -367,18 +345,7 @@ class UkfConfig(_Section):
 
 
 class WlsConfig(_Section):
-    nlos_mean: float = Field(0.114, description="NLOS range error mean, metres (Qiu 2022)")
-    nlos_std: float = Field(0.145, gt=0, description="NLOS range error std, metres")
-    los_std: float = Field(0.026, gt=0, description="LOS range error std, metres")
     window: float = Field(0.2, gt=0, description="epoch length for grouping ranges, seconds")
-    nlos_prior: float = Field(
-        0.2, ge=0, lt=1, description="prior probability that a range is NLOS (0..1)"
-    )
-    anchor_nlos: dict[str, tuple[float, float, float, float]] = Field(
-        default_factory=dict,
-        description="per-anchor [los_std, nlos_mean, nlos_std, nlos_prior] (m, m, m, 0..1) "
-        "from calibrate-nlos; overrides the global values",
-    )
     weighted: bool = Field(True, description="NLOS-probability weights (Qiu eq. 10-11)")
     height_projection: Literal["auto", "on", "off"] = Field(
         "auto",
@@ -401,10 +368,50 @@ class LkfConfig(_Section):
 
 
 class NlosConfig(_Section):
+    """The LOS/NLOS range-error model (`uwbfuse.nlos.NlosModel`), read by the graph (online
+    and batch), wls and the filters' range weighting. The LOS std is `[uwb] sigma`."""
+
     classifier: str = Field(
         "", description="optional NLOS classifier model file written by `uwbfuse "
         "train-nlos` ('' = none): its P(NLOS) per range is the graph's prior NLOS "
         "probability, the wls weights and the ekf/ukf range weighting")
+    excess_mean: float = Field(
+        0.3, gt=0, description="graph: prior mean of an anchor's NLOS excess over its LOS "
+        "offset, metres (the mean its NLOS states revert to; the states follow the log)")
+    excess_slow_sigma: float = Field(
+        0.13, gt=0, description="graph: std of the slowly varying NLOS excess of an anchor "
+        "(the state), metres")
+    excess_sigma: float = Field(
+        0.07, gt=0, description="graph: std of the fast (per-range) part of the NLOS excess, "
+        "metres; an upper bound, the log's EM estimates it")
+    tau: float = Field(
+        5.0, gt=0, description="correlation time of an anchor's NLOS excess, seconds (the "
+        "graph's NLOS states, the filters' range-bias states)")
+    segment: float = Field(
+        1.0, gt=0, description="graph: time step of the per-anchor NLOS excess states, seconds")
+    rate: float = Field(
+        0.3, gt=0, lt=1, description="graph: prior fraction of NLOS ranges (EM-adapted)")
+    switch: float = Field(
+        0.05, gt=0, lt=1, description="prior probability that an anchor's LOS/NLOS state "
+        "changes between two of its ranges (the graph's chain; the filters' prior, which they "
+        "re-estimate from their posteriors)")
+    range_los_std: float = Field(
+        0.026, gt=0, description="per-range model (wls; the filters' EM prior): LOS range "
+        "error std, metres (Qiu 2022, Table 2)")
+    range_nlos_mean: float = Field(
+        0.114, description="per-range model: NLOS range error mean (absolute: no anchor "
+        "offset removed), metres (Qiu 2022)")
+    range_nlos_std: float = Field(
+        0.145, gt=0, description="per-range model: NLOS range error std (slow and fast parts "
+        "together), metres (Qiu 2022)")
+    range_nlos_prior: float = Field(
+        0.2, ge=0, lt=1, description="per-range model: prior probability that a range is "
+        "NLOS (0..1)")
+    anchor: dict[str, tuple[float, float, float, float]] = Field(
+        default_factory=dict,
+        description="per-anchor per-range model [los_std, nlos_mean, nlos_std, nlos_prior] "
+        "(m, m, m, 0..1) from calibrate-nlos; overrides the range_* values (wls)",
+    )
 
 
 class PoseConfig(_Section):
@@ -605,6 +612,19 @@ def _format_validation_error(source: str, err: ValidationError) -> str:
 _RENAMED: dict[tuple[str, str | None], tuple[str, str | None]] = {
     ("ekf", None): ("filter", None),
     ("wls", "lkf_accel_psd"): ("lkf", "accel_psd"),
+    # the two NLOS models of earlier releases, now one ([nlos], `uwbfuse.nlos`)
+    ("graph", "nlos_mean"): ("nlos", "excess_mean"),
+    ("graph", "nlos_slow_sigma"): ("nlos", "excess_slow_sigma"),
+    ("graph", "nlos_sigma"): ("nlos", "excess_sigma"),
+    ("graph", "nlos_tau"): ("nlos", "tau"),
+    ("graph", "nlos_segment"): ("nlos", "segment"),
+    ("graph", "nlos_rate"): ("nlos", "rate"),
+    ("graph", "nlos_switch"): ("nlos", "switch"),
+    ("wls", "los_std"): ("nlos", "range_los_std"),
+    ("wls", "nlos_mean"): ("nlos", "range_nlos_mean"),
+    ("wls", "nlos_std"): ("nlos", "range_nlos_std"),
+    ("wls", "nlos_prior"): ("nlos", "range_nlos_prior"),
+    ("wls", "anchor_nlos"): ("nlos", "anchor"),
 }
 
 

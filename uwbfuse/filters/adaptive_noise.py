@@ -3,8 +3,8 @@
 
 Ranges (`RangeNoise`): each range enters the filter as one scalar update. Its innovation y
 (measured minus predicted range, m) with prediction variance s = h P h^T (m^2) is weighed
-with the project's LOS/NLOS range-error model (`positioning.nlos_model`: LOS N(0,
-los_std^2), NLOS N(nlos_mean, nlos_std^2)): the posterior NLOS probability p of the range
+with the per-range view of the project's LOS/NLOS range-error model (`uwbfuse.nlos`: LOS
+N(0, los_std^2), NLOS N(nlos_mean, nlos_std^2)): the posterior NLOS probability p of the range
 (`nlos_probability`, the prediction variance added to both components) gives the moment-
 matched mixture posterior as the measurement, i.e. the expected NLOS excess p nlos_mean is
 removed from the range and its variance is (1-p) los^2 + p nlos^2 + p (1-p) nlos_mean^2
@@ -17,9 +17,10 @@ q p_nlos, with q the switching rate.
 
 Every parameter comes from the log: the mixture is re-fitted by EM (`fit_nlos_mixture`)
 over the innovations of the last `WINDOW` accepted ranges every `REFIT_EVERY` ranges, with
-the `[wls]` model as a prior worth `PRIOR_RANGES` ranges; the switching rate is the
-expected number of LOS/NLOS changes between consecutive ranges of an anchor (from the
-posteriors), with the graph's `nlos_switch` as its prior, same weight.
+the model's per-range values (`[nlos] range_*`) as a prior worth `PRIOR_RANGES` ranges; the
+switching rate is the expected number of LOS/NLOS changes between consecutive ranges of an
+anchor (from the posteriors), with the model's `p_switch` (`[nlos] switch`) as its prior,
+same weight.
 
 Gating: a range whose squared innovation, after the mixture correction, exceeds the
 chi-square quantile of `[filter] gate_probability` times its variance (mixture plus
@@ -47,10 +48,8 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.filters.models import F64, gate_threshold
-from uwbfuse.positioning.nlos_model import (
-    _MIN_LOS_STD as MIN_LOS_STD,
-)
-from uwbfuse.positioning.nlos_model import (
+from uwbfuse.nlos import (
+    MIN_LOS_STD,
     NlosModel,
     NlosParams,
     fit_nlos_mixture,
@@ -61,7 +60,7 @@ from uwbfuse.positioning.nlos_model import (
 REFIT_EVERY = 200
 #: Accepted ranges (the newest) each refit uses.
 WINDOW = 4000
-#: Weight of the configured `[wls]` model in each refit, in ranges.
+#: Weight of the configured per-range model in each refit, in ranges.
 PRIOR_RANGES = 200.0
 #: Weight of a configured wheel/planar variance, in measurement rows, and the memory of
 #: the running estimate (rows; exponential forgetting).
@@ -80,7 +79,7 @@ _SQRT_2PI = math.sqrt(2 * math.pi)
 def _nlos_probability_one(
     y: float, los_std: float, nlos_mean: float, nlos_std: float, prior: float, s: float
 ) -> float:
-    """`nlos_model.nlos_probability` for one finite residual y (m) with extra variance s
+    """`nlos.nlos_probability` for one finite residual y (m) with extra variance s
     (m^2), in floats (exp through numpy, as the array version, so results are identical)."""
     los = math.sqrt(max(los_std, MIN_LOS_STD) ** 2 + s)
     nl = math.sqrt(nlos_std**2 + s)
@@ -99,12 +98,13 @@ class RangeNoise:
     """Per-range NLOS weighting and gating with a mixture fitted to the innovations."""
 
     def __init__(self, config: Config, n_anchor: int) -> None:
-        self.prior = NlosModel.from_config(config.wls).default
+        shared = NlosModel.from_config(config)
+        self.prior = shared.per_range
         self.model = self.prior
         self.gating = config.filter.gating
         self.gate = gate_threshold(config.filter.gate_probability, 1)
         self.p_last = np.full(n_anchor, self.prior.nlos_prior)
-        self.q0 = config.graph.nlos_switch
+        self.q0 = shared.p_switch
         self.q = self.q0
         self._switch_sum = 0.0
         self._switch_n = 0
@@ -135,7 +135,7 @@ class RangeNoise:
 
     def widen_los_prior(self, los_std: float) -> None:
         """Take at least `los_std` (m; the start solve's residual spread, at least `[uwb]
-        sigma`) as the LOS spread of the model and of the refits' prior. (With the `[wls]`
+        sigma`) as the LOS spread of the model and of the refits' prior. (With the per-range
         0.026 m as prior the UWB + IMU filter on simulated warehouse logs became
         overconfident: NEES 700 against about 3; with it, room fits 0.034 m for 0.026.)"""
         if los_std > self.model.los_std:

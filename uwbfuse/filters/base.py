@@ -215,7 +215,7 @@ class StreamingFilter(EstimatorBase):
         self.scale_state = self.RANGE_BIAS and self.RANGE_SCALE and held and len(anchors) > 0
         self.n_bias = (len(anchors) + int(self.scale_state)) if self.RANGE_BIAS and held else 0
         self.rbias: F64 = np.zeros(self.n_bias)
-        self.bias_tau = config.graph.nlos_tau
+        self.bias_tau = config.nlos.tau
         self.gating = config.filter.gating
         self.initialiser = initialiser or default_initialiser(config, anchors, streams)
         self._init_pending = True

@@ -3,8 +3,9 @@
 
 At every step t the latest range of each anchor within (t - `wls.window`, t] forms an epoch
 (ranges arrive round robin). The tag position is the NLOS-weighted fix of
-`uwbfuse.positioning.nlos_model.weighted_fix`: per-range NLOS probabilities from the LOS/NLOS
-error distributions (`[wls]`, per anchor from `calibrate_nlos`) give the weights of Qiu eq.
+`uwbfuse.positioning.nlos_weighting.weighted_fix`: per-range NLOS probabilities from the per-range
+view of the NLOS model (`uwbfuse.nlos`, `[nlos] range_*`, per anchor `[nlos.anchor]` from
+`calibrate_nlos`) give the weights of Qiu eq.
 10-11, the expected NLOS excess is removed, and a Gauss-Newton step refines the linear
 solution. For wheeled logs (planar vehicles, `wls.height_projection = auto`) the fix is 2-D
 at a known tag height by anchor height projection (INS-UWB paper); otherwise 3-D (2-D at an
@@ -17,14 +18,14 @@ track direction: the direction of motion over the last `wls.min_track` metres of
 base position is the tag position minus the lever arm `tag_in_base` rotated by that yaw.
 
 `calibrate_nlos(log_with_gt, config) -> NlosModel` (re-exported here) fits the per-anchor
-error distributions for the `[wls]` table.
+error distributions for the `[nlos]` table.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,7 @@ from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
 from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance
+from uwbfuse.nlos import NlosModel, NlosParams
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
     epoch_window_ns,
@@ -40,13 +42,7 @@ from uwbfuse.positioning.multilateration import (
     select_nearest,
 )
 from uwbfuse.positioning.nlos_classifier import RangePriors
-from uwbfuse.positioning.nlos_model import (
-    NlosModel,
-    NlosParams,
-    WeightedFixes,
-    calibrate_nlos,
-    weighted_fix,
-)
+from uwbfuse.positioning.nlos_weighting import WeightedFixes, calibrate_nlos, weighted_fix
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 __all__ = ["EpochFixer", "TagFix", "TrackHeading", "WlsEstimator", "calibrate_nlos", "make"]
@@ -107,9 +103,9 @@ class EpochFixer:
             self.tag_z = default_tag_z(anchors.positions)
         self.dim = 2 if project or len(anchors) < 4 else 3
         # Unweighted: every range LOS with the [uwb] sigma (plain LS, Qiu eq. 6).
-        self.model = NlosModel.from_config(wls) if wls.weighted else NlosModel(
-            NlosParams(config.uwb.sigma, 0.0, 1.0, 0.0)
-        )
+        model = NlosModel.from_config(config)
+        self.model = model if wls.weighted else replace(
+            model, per_range=NlosParams(config.uwb.sigma, 0.0, 1.0, 0.0), per_anchor={})
         self.base_window_ns = round(wls.window * NS_PER_S)
         self.window_ns = self.base_window_ns
         self._n_seen = 0

@@ -32,17 +32,11 @@ from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import (
-    LOG_OUTLIER,
     MIN_WEIGHT,
-    SIGMA_LOS_MIN,
-    NlosModel,
-    hmm_filter,
     huber_log_density,
-    jump_log_likelihoods,
     los_bias_key,
     nlos_state_factors,
     range_factor,
-    residual_jumps_by_anchor,
 )
 from uwbfuse.graph.wheel import (
     WheelTrack,
@@ -50,6 +44,14 @@ from uwbfuse.graph.wheel import (
     planar_covariance6,
     se2_between,
     se2_to_pose3,
+)
+from uwbfuse.nlos import (
+    LOG_OUTLIER,
+    SIGMA_LOS_MIN,
+    NlosModel,
+    hmm_filter,
+    jump_log_likelihoods,
+    residual_jumps_by_anchor,
 )
 from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
@@ -288,7 +290,7 @@ class GraphBuilder:
         self.tag = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
-        self.mixture = NlosModel.from_config(config.uwb, self.g)
+        self.mixture = NlosModel.from_config(config)
         self.mixture_prior = copy.copy(self.mixture)
         # LOS sigma of the range factors, from residuals at the smoothed estimate (the
         # mixture's is the one-step prediction's, wider by the prediction error)
@@ -792,7 +794,7 @@ class GraphBuilder:
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
     ) -> np.ndarray:
         """Jump log-likelihoods (N,2,2) of each range against its anchor's previous one
-        (`uwb.residual_jumps_by_anchor`; the anchor's last range of the previous keyframe
+        (`nlos.residual_jumps_by_anchor`; the anchor's last range of the previous keyframe
         leads)."""
         delta = residual_jumps_by_anchor(t, a, r, self._jump_t, self._jump_r)
         # each anchor's newest range leads its next keyframe's chain (t is time-sorted)

@@ -56,13 +56,9 @@ from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
-from uwbfuse.graph.uwb import (
-    hmm_smooth,
-    jump_log_likelihoods,
-    los_subset_search,
-    residual_jumps_by_anchor,
-)
+from uwbfuse.graph.uwb import los_subset_search
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
+from uwbfuse.nlos import hmm_smooth, jump_log_likelihoods, residual_jumps_by_anchor
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream

@@ -31,11 +31,7 @@ from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
-    LOG_OUTLIER,
     MIN_WEIGHT,
-    SIGMA_LOS_MIN,
-    NlosModel,
-    hmm_smooth,
     huber_log_density,
     los_bias_key,
     los_subset_search,
@@ -43,6 +39,7 @@ from uwbfuse.graph.uwb import (
     range_factor_keyed,
 )
 from uwbfuse.graph.wheel import between_factor
+from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
 
@@ -602,7 +599,7 @@ def _solve_em(
     rec = dict(rec)
     rec["z"] = z_raw / (1.0 + scale[rec["anchor"]])
     with_bias = g_cfg.estimate_range_bias
-    prior = NlosModel.from_config(uwb, g_cfg)
+    prior = NlosModel.from_config(cfg)
     mix = copy.copy(model)
     values = gtsam.Values(initial)
     n_anchor = len(anchors)

@@ -783,7 +783,7 @@ class Initialiser:
         # Per-anchor range biases (slow NLOS, antenna delay) over the window.
         anc_ids, anc_col = np.unique(ar, return_inverse=True)
         n_b = len(anc_ids) if self.estimate_range_bias else 0
-        b_sigma = self.config.wls.nlos_std
+        b_sigma = self.config.nlos.range_nlos_std
         n_s = len(trk.sens_sigma)
         # Common range scale error k (ranges read (1 + k) x the distance): a few percent
         # of tens of metres is metres on large sites. Wheeled logs only: the wheel track

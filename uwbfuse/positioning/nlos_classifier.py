@@ -239,7 +239,7 @@ def range_labels(log: SensorLog, config: Config, threshold: float = LABEL_THRESH
                  ) -> tuple[NDArray[np.int8], F64]:
     """Labels (N,) 1 = NLOS (|measured - true range| > threshold m), 0 = LOS, -1 = unknown
     (outside the ground truth's time span), and the errors (N,) m."""
-    from uwbfuse.positioning.nlos_model import range_errors
+    from uwbfuse.positioning.nlos_weighting import range_errors
 
     err, _ = range_errors(log, config)
     lab = np.where(np.isfinite(err), (np.abs(err) > threshold).astype(np.int8), -1)

@@ -1,14 +1,11 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""NLOS range-error model, NLOS-weighted least squares and its calibration (Qiu et al. 2022).
+"""NLOS-weighted least squares and its calibration (Qiu et al. 2022), on the per-range view
+of the NLOS model (`uwbfuse.nlos`: LOS e ~ N(0, los_std^2), NLOS e ~ N(nlos_mean,
+nlos_std^2), prior nlos_prior per range, per anchor when calibrated).
 
-Range error e = measured - true range (m). LOS: e ~ N(0, los_std^2). NLOS: e ~ N(nlos_mean,
-nlos_std^2), with prior probability nlos_prior per range (per anchor when calibrated).
-
-- `nlos_probability`: posterior NLOS probability of a range from its residual against a
-  position estimate (Bayes with the two fitted distributions).
 - `weighted_fix`: Qiu eq. 10-11 per epoch: weights beta_i = 1 / E[var_i] with the NLOS
-  probability of each range, the expected NLOS excess subtracted, iterated (EM-like) from a
-  robust start, then refined by Gauss-Newton with the same weights.
+  probability of each range (`nlos.nlos_probability`), the expected NLOS excess subtracted,
+  iterated (EM-like) from a robust start, then refined by Gauss-Newton with the same weights.
 - `calibrate_nlos`: Qiu eq. 8-9: per anchor, the histogram of range errors (against ground
   truth) is fitted by scaled normal curves f(x) = A / (sqrt(2 pi) sigma) exp(-(x - mean)^2 /
   (2 sigma^2)) by quasi-Newton (L-BFGS-B) least squares on the bin frequencies; a LOS and an
@@ -19,17 +16,24 @@ nlos_std^2), with prior probability nlos_prior per range (per anchor when calibr
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
-from uwbfuse.config import Config, RobustKernel, WlsConfig
+from uwbfuse.config import Config, RobustKernel
 from uwbfuse.errors import EstimatorError
+from uwbfuse.nlos import (
+    MAX_LOS_STD,
+    MIN_LOS_STD,
+    NlosModel,
+    NlosParams,
+    nlos_probability,
+    normal_pdf,
+)
 from uwbfuse.positioning.multilateration import (
     Fixes,
     gauss_newton,
@@ -41,81 +45,6 @@ from uwbfuse.positioning.multilateration import (
 from uwbfuse.streams import AnchorMap, SensorLog
 
 F64 = NDArray[np.float64]
-
-_MIN_LOS_STD = 0.005  # floor on the LOS std used for probabilities, m
-_MAX_LOS_STD = 1.0  # m: a fitted LOS std beyond this is no UWB radio's (Plaza's read 0.3-0.5)
-
-
-@dataclass(frozen=True)
-class NlosParams:
-    """One error model: los_std, nlos_mean, nlos_std (m) and nlos_prior (0..1)."""
-
-    los_std: float
-    nlos_mean: float
-    nlos_std: float
-    nlos_prior: float
-
-    def as_list(self) -> list[float]:
-        return [self.los_std, self.nlos_mean, self.nlos_std, self.nlos_prior]
-
-
-@dataclass(frozen=True)
-class NlosModel:
-    """Global NLOS model plus per-anchor overrides (anchor id -> NlosParams)."""
-
-    default: NlosParams
-    per_anchor: dict[str, NlosParams] = field(default_factory=dict)
-    samples: dict[str, int] = field(default_factory=dict)
-
-    @classmethod
-    def from_config(cls, wls: WlsConfig) -> NlosModel:
-        """The model in `[wls]` (global values and `anchor_nlos`)."""
-        default = NlosParams(wls.los_std, wls.nlos_mean, wls.nlos_std, wls.nlos_prior)
-        per = {k: NlosParams(*map(float, v)) for k, v in wls.anchor_nlos.items()}
-        return cls(default, per)
-
-    def arrays(self, anchors: AnchorMap) -> tuple[F64, F64, F64, F64]:
-        """(los_std, nlos_mean, nlos_std, nlos_prior), each (M,) in anchor-map order."""
-        rows = [self.per_anchor.get(a, self.default).as_list() for a in anchors.ids]
-        arr = np.array(rows, dtype=np.float64).reshape(-1, 4)
-        return arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3]
-
-    def to_toml(self) -> dict[str, Any]:
-        """TOML-ready `[wls]` values: global los_std/nlos_mean/nlos_std/nlos_prior and
-        `anchor_nlos` = {id: [los_std, nlos_mean, nlos_std, nlos_prior]}."""
-        d = self.default
-        return {
-            "los_std": round(d.los_std, 4),
-            "nlos_mean": round(d.nlos_mean, 4),
-            "nlos_std": round(d.nlos_std, 4),
-            "nlos_prior": round(d.nlos_prior, 4),
-            "anchor_nlos": {k: [round(x, 4) for x in p.as_list()]
-                            for k, p in self.per_anchor.items()},
-        }
-
-
-def _normal_pdf(x: F64, mean: F64 | float, std: F64 | float) -> F64:
-    return np.exp(-0.5 * ((x - mean) / std) ** 2) / (math.sqrt(2 * math.pi) * std)
-
-
-def nlos_probability(
-    residual: F64, los_std: F64, nlos_mean: F64, nlos_std: F64, prior: F64,
-    extra_var: F64 | float = 0.0,
-) -> F64:
-    """Posterior NLOS probability of ranges from residuals e = measured - predicted (m).
-
-    residual (N,M); model arrays (M,); extra_var: position-induced variance added to both
-    components (m^2). NaN residuals give the prior.
-    """
-    los = np.sqrt(np.maximum(los_std, _MIN_LOS_STD) ** 2 + extra_var)
-    nl = np.sqrt(nlos_std**2 + extra_var)
-    pn = prior * _normal_pdf(residual, nlos_mean, nl)
-    pl = (1.0 - prior) * _normal_pdf(residual, 0.0, los)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p = pn / (pn + pl)
-    p = np.where(np.isfinite(p), p, np.where(residual > nlos_mean, 1.0, 0.0))
-    return np.where(np.isfinite(residual), p, np.broadcast_to(prior, residual.shape))
-
 
 @dataclass(frozen=True)
 class WeightedFixes:
@@ -150,7 +79,7 @@ def weighted_fix(
         rng[~select_nearest(rng, nearest)] = np.nan
     los, nmean, nstd, prior = model.arrays(anchors)
     mix_var = (1 - prior) * los**2 + prior * (nstd**2 + nmean**2) - (prior * nmean) ** 2
-    sig0 = np.sqrt(np.maximum(mix_var, _MIN_LOS_STD**2))
+    sig0 = np.sqrt(np.maximum(mix_var, MIN_LOS_STD**2))
     # Start from the prior: expected excess removed, mixture std as weights.
     start = rng - prior * nmean
     fx = multilaterate(pos_a, start, dim=dim, tag_z=tag_z, sigma=sig0[None, :],
@@ -169,7 +98,7 @@ def weighted_fix(
             p = nlos_probability(res, los, nmean, nstd, prior,
                                  extra_var=pos_var[:, None] / dim)
             p = np.where(fx.ok[:, None], p, prior)
-        var = (1 - p) * np.maximum(los, _MIN_LOS_STD) ** 2 + p * nstd**2
+        var = (1 - p) * np.maximum(los, MIN_LOS_STD) ** 2 + p * nstd**2
         corrected = rng - p * nmean
         sigma = np.sqrt(var)
         w = 1.0 / var
@@ -207,8 +136,8 @@ def _fit_histogram(
 
     def model(theta: F64) -> F64:
         w_l, mu_l, ls_l, w_n, mu_n, ls_n = theta
-        return (w_l * _normal_pdf(a_k, mu_l, math.exp(ls_l))
-                + w_n * _normal_pdf(a_k, mu_n, math.exp(ls_n)))
+        return (w_l * normal_pdf(a_k, mu_l, math.exp(ls_l))
+                + w_n * normal_pdf(a_k, mu_n, math.exp(ls_n)))
 
     def cost(theta: F64) -> float:
         return float(np.sum((model(theta) - b_k) ** 2))
@@ -270,18 +199,20 @@ def calibrate_nlos(
     """Fit the LOS/NLOS range-error distributions per anchor (Qiu eq. 8-9) from a log with
     ground truth; anchors with fewer than `min_samples` ranges keep the global fit.
 
-    Returns an `NlosModel`; `model.to_toml()` gives the `[wls]` values.
+    Returns the config's `NlosModel` with the fitted per-range model;
+    `model.per_range_toml()` gives its `[nlos]` values.
     """
     err, anc = range_errors(log, config)
     assert log.anchors is not None
-    guess = NlosModel.from_config(config.wls).default
+    base = NlosModel.from_config(config)
+    guess = base.per_range
     ok = np.isfinite(err)
     if np.count_nonzero(ok) < min_samples:
         raise EstimatorError(
             f"{log.source}: calibrate-nlos needs at least {min_samples} ranges within the "
             f"ground-truth time span, got {int(np.count_nonzero(ok))}"
         )
-    default = _fit_histogram(err[ok], bins, guess, (0.003, _MAX_LOS_STD))
+    default = _fit_histogram(err[ok], bins, guess, (0.003, MAX_LOS_STD))
     per: dict[str, NlosParams] = {}
     samples: dict[str, int] = {}
     for i, aid in enumerate(log.anchors.ids):
@@ -290,15 +221,16 @@ def calibrate_nlos(
         if len(e) >= min_samples:
             g = default.los_std
             per[aid] = _fit_histogram(e, bins, default, (0.5 * g, 2.0 * g))
-    return NlosModel(default, per, samples)
+    return replace(base, per_range=default, per_anchor=per, samples=samples)
 
 
 def calibrate_nlos_file(
     log_path: str | Path, *, config_path: str | Path | None = None,
     gt_path: str | Path | None = None,
 ) -> str:
-    """`uwbfuse calibrate-nlos`: fit the model on a log and return it as a `[wls]` TOML
-    snippet to paste into the config. Ground truth from the log or from a TUM file."""
+    """`uwbfuse calibrate-nlos`: fit the per-range model on a log and return it as an
+    `[nlos]` TOML snippet to paste into the config. Ground truth from the log or from a TUM
+    file."""
     from uwbfuse.config import _toml_value, load_config
     from uwbfuse.io.reader import read_log
     from uwbfuse.io.tum import read_tum
@@ -308,42 +240,10 @@ def calibrate_nlos_file(
     if gt_path is not None:
         log.ground_truth = read_tum(gt_path)
     model = calibrate_nlos(log, config)
-    values = model.to_toml()
-    per_anchor = values.pop("anchor_nlos")
-    lines = [f"# NLOS range-error model fitted on {log_path} (metres)", "[wls]"]
+    values = model.per_range_toml()
+    per_anchor = values.pop("anchor")
+    lines = [f"# per-range NLOS range-error model fitted on {log_path} (metres)", "[nlos]"]
     lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
-    lines += ["", "[wls.anchor_nlos]  # id = [los_std, nlos_mean, nlos_std, nlos_prior]"]
+    lines += ["", "[nlos.anchor]  # id = [los_std, nlos_mean, nlos_std, nlos_prior]"]
     lines += [f'"{k}" = {_toml_value(v)}' for k, v in per_anchor.items()]
     return "\n".join(lines) + "\n"
-
-
-def fit_nlos_mixture(
-    residual: F64, extra_var: F64, prior: NlosParams, n0: float, iterations: int = 8,
-) -> NlosParams:
-    """EM fit of the LOS/NLOS model to range residuals without ground truth.
-
-    residual (N,) m: measured minus predicted range (e.g. a filter's innovations), each with
-    the variance extra_var (N,) m^2 of its prediction added to both components. E-step:
-    `nlos_probability`; M-step: NLOS share and mean, and each component's spread with the
-    prediction variance taken out. `prior` counts as n0 ranges in every estimate (it holds
-    the model where the data say little). The NLOS mean is kept >= 0 (NLOS only lengthens
-    a range) and the LOS std within [_MIN_LOS_STD, _MAX_LOS_STD].
-    """
-    r = np.asarray(residual, dtype=np.float64)
-    s = np.asarray(extra_var, dtype=np.float64)
-    los, mu, nstd, pi = prior.los_std, prior.nlos_mean, prior.nlos_std, prior.nlos_prior
-    if len(r) == 0:
-        return prior
-    for _ in range(iterations):
-        g = nlos_probability(r, np.float64(los), np.float64(mu), np.float64(nstd),
-                             np.float64(pi), extra_var=s)
-        sg, sl = float(g.sum()), float(len(r) - g.sum())
-        pi = float(np.clip((sg + n0 * prior.nlos_prior) / (len(r) + n0), 0.01, 0.95))
-        mu = max((float(g @ r) + n0 * prior.nlos_mean) / (sg + n0), 0.0)
-        v_l = (float((1.0 - g) @ (r * r - s)) + n0 * prior.los_std**2) / (sl + n0)
-        d = r - mu
-        v_n = (float(g @ (d * d - s)) + n0 * prior.nlos_std**2) / (sg + n0)
-        los = float(np.clip(math.sqrt(max(v_l, 0.0)), _MIN_LOS_STD, _MAX_LOS_STD))
-        nstd = max(math.sqrt(max(v_n, 0.0)), los)
-
-    return NlosParams(los, mu, nstd, pi)

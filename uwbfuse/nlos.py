@@ -1,0 +1,385 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The LOS/NLOS range-error model: one model, shared by the graph (online and batch), wls and
+the Kalman filters' range weighting. Numpy only (no GTSAM: `uwbfuse.filters` runs without it);
+the graph builds its native GTSAM factors from it in `graph/uwb.py`.
+
+Range error e = measured range - true distance (m). In line of sight (LOS) e ~ N(0,
+sigma_los) (`[uwb] sigma`: the radio's LOS noise). In NLOS the direct path is blocked and the
+range reads long by an excess: a slowly varying part per anchor (std `sigma_slow`, Gauss-Markov
+with correlation time `tau_s`, held per `segment_s`) around a mean `mu_nlos`, plus a fast
+per-range part (std `sigma_nlos`). A range is NLOS with prior probability `p_nlos`, and an
+anchor's LOS/NLOS state persists: it changes between two of its ranges with probability
+`p_switch` (a two-state Markov chain: `hmm_filter` online, `hmm_smooth` in batch, each
+transition weighed by the jump of the residual, `jump_log_likelihoods`).
+
+Two views of the same physics, and the one named difference between them:
+
+- the **state model** (the graph): the slow NLOS excess is a per-anchor state E(a, s) that the
+  graph estimates, so its mean `mu_nlos` is the excess over the anchor's estimated LOS offset
+  D(a) and each range only adds the fast noise `sigma_nlos` around it. Its values are priors
+  that the log re-estimates (`NlosModel.m_step`; the configured sigmas are upper bounds).
+- the **per-range model** (`per_range`, an `NlosParams`; per anchor in `per_anchor`): the
+  marginal error distribution of one range on its own, absolute (no anchor offset removed)
+  and with the slow and fast parts together (std about hypot(sigma_slow, sigma_nlos)). It is
+  what an estimator that weighs each range alone uses: wls per epoch (Qiu 2022 eq. 10-11,
+  `nlos_probability`) and the filters' innovations (the prior of their EM fit to the log,
+  `fit_nlos_mixture`). Its defaults are Qiu 2022's calibrated DW1000 values (Table 2), which
+  reproduce Qiu's tables; `calibrate-nlos` fits them (per anchor) against ground truth.
+
+The two share the physics (LOS noise, a positive NLOS excess of about 0.15 m spread: 0.145
+per range, hypot(0.13, 0.07) = 0.148 as state + noise) and the persistence (`tau_s`,
+`p_switch`, read by the graph and the filters). Their means, LOS spreads and shares differ
+because they are different quantities: the state model's start values are loose priors that
+its EM shrinks (LOS 0.10 m upper bound, excess 0.3 m over the LOS offset, share 0.3), the
+per-range model is a calibration a method without EM keeps (LOS 0.026 m absolute error,
+NLOS mean 0.114 m absolute, share 0.2); `docs/results.md` (2026-12-02, session 10, "One
+NLOS model") says how each value is obtained.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from uwbfuse.config import Config
+from uwbfuse.streams import AnchorMap
+
+F64 = NDArray[np.float64]
+
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+# floors of the state model's M-step, m: below them a fit is the one-step prediction's
+# luck, not the radio (a DW1000 reads about 2 cm in LOS)
+SIGMA_LOS_MIN = 0.02
+SIGMA_NLOS_MIN = 0.03
+MIN_LOS_STD = 0.005  # floor on the per-range LOS std used for probabilities, m
+MAX_LOS_STD = 1.0  # m: a fitted LOS std beyond this is no UWB radio's (Plaza's read 0.3-0.5)
+JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
+JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
+# gross-outlier floor of each component's likelihood: 2 % spread over 20 m
+LOG_OUTLIER = math.log(0.02 / 20.0)
+
+
+@dataclass(frozen=True)
+class NlosParams:
+    """The per-range model: los_std, nlos_mean, nlos_std (m) and nlos_prior (0..1)."""
+
+    los_std: float
+    nlos_mean: float
+    nlos_std: float
+    nlos_prior: float
+
+    def as_list(self) -> list[float]:
+        return [self.los_std, self.nlos_mean, self.nlos_std, self.nlos_prior]
+
+
+@dataclass
+class NlosModel:
+    """The range-error model (see the module docstring); lengths in metres, times in seconds.
+
+    State model: sigma_los, sigma_nlos (fast part), mu_nlos (over the LOS offset), sigma_slow,
+    tau_s, segment_s, p_nlos, p_switch. Per-range model: `per_range`, overridden per anchor
+    id by `per_anchor` (`samples`: ranges per anchor of a calibration)."""
+
+    sigma_los: float
+    sigma_nlos: float
+    mu_nlos: float
+    sigma_slow: float
+    tau_s: float
+    segment_s: float
+    p_nlos: float
+    p_switch: float
+    per_range: NlosParams = field(default_factory=lambda: NlosParams(0.026, 0.114, 0.145, 0.2))
+    per_anchor: dict[str, NlosParams] = field(default_factory=dict)
+    samples: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, config: Config) -> NlosModel:
+        """The model of `[nlos]`, with `[uwb] sigma` as the LOS std."""
+        c = config.nlos
+        per = {k: NlosParams(*map(float, v)) for k, v in c.anchor.items()}
+        return cls(config.uwb.sigma, c.excess_sigma, c.excess_mean, c.excess_slow_sigma,
+                   c.tau, c.segment, c.rate, c.switch,
+                   NlosParams(c.range_los_std, c.range_nlos_mean, c.range_nlos_std,
+                              c.range_nlos_prior), per)
+
+    def arrays(self, anchors: AnchorMap) -> tuple[F64, F64, F64, F64]:
+        """Per-range model (los_std, nlos_mean, nlos_std, nlos_prior), each (M,) in
+        anchor-map order."""
+        rows = [self.per_anchor.get(a, self.per_range).as_list() for a in anchors.ids]
+        arr = np.array(rows, dtype=np.float64).reshape(-1, 4)
+        return arr[:, 0], arr[:, 1], arr[:, 2], arr[:, 3]
+
+    def per_range_toml(self) -> dict[str, Any]:
+        """TOML-ready `[nlos]` values of the per-range model: range_los_std, range_nlos_mean,
+        range_nlos_std, range_nlos_prior and `anchor` = {id: [los_std, nlos_mean, nlos_std,
+        nlos_prior]}."""
+        d = self.per_range
+        return {
+            "range_los_std": round(d.los_std, 4),
+            "range_nlos_mean": round(d.nlos_mean, 4),
+            "range_nlos_std": round(d.nlos_std, 4),
+            "range_nlos_prior": round(d.nlos_prior, 4),
+            "anchor": {k: [round(x, 4) for x in p.as_list()]
+                       for k, p in self.per_anchor.items()},
+        }
+
+    @property
+    def chain_sigma(self) -> float:
+        """Std of the NLOS state's change over one segment (Gauss-Markov), m."""
+        phi = math.exp(-self.segment_s / self.tau_s)
+        return self.sigma_slow * math.sqrt(max(1.0 - phi * phi, 1e-6))
+
+    @property
+    def reversion_sigma(self) -> float:
+        """Std of the per-segment pull of a chained NLOS state towards D + mu, m."""
+        return self.sigma_slow * math.sqrt(2.0 * self.tau_s / self.segment_s)
+
+    def log_likelihoods(
+        self, r_los: np.ndarray, r_nlos: np.ndarray, var_nlos: np.ndarray | float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """log p(z | LOS), log p(z | NLOS) from the two residuals (m) and the NLOS state var."""
+        s_l = self.sigma_los
+        ll_l = -0.5 * (r_los / s_l) ** 2 - math.log(s_l) - _LOG_SQRT_2PI
+        s_n = np.sqrt(self.sigma_nlos**2 + np.asarray(var_nlos))
+        ll_n = -0.5 * (r_nlos / s_n) ** 2 - np.log(s_n) - _LOG_SQRT_2PI
+        return np.logaddexp(ll_l, LOG_OUTLIER), np.logaddexp(ll_n, LOG_OUTLIER)
+
+    def m_step(
+        self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray, prior: NlosModel,
+        n0: float = 50.0,
+    ) -> None:
+        """Re-estimate sigma_los, sigma_nlos and p_nlos; the prior counts as n0 ranges.
+
+        Residuals beyond 1 m are gross outliers, left to the robust kernel.
+        """
+        ok = (np.abs(r_los) < 1.0) & (np.abs(r_nlos) < 1.0)
+        r_los, r_nlos, g = r_los[ok], r_nlos[ok], g[ok]
+        if len(g) < 20:
+            return
+        w_l, w_n = 1.0 - g, g
+        s_l = (np.sum(w_l * r_los**2) + n0 * prior.sigma_los**2) / (np.sum(w_l) + n0)
+        s_n = (np.sum(w_n * r_nlos**2) + n0 * prior.sigma_nlos**2) / (np.sum(w_n) + n0)
+        # the configured sigmas are upper bounds: inflating them would only hide NLOS
+        self.sigma_los = min(max(float(np.sqrt(s_l)), SIGMA_LOS_MIN), prior.sigma_los)
+        self.sigma_nlos = min(max(float(np.sqrt(s_n)), SIGMA_NLOS_MIN), prior.sigma_nlos)
+        p = (np.sum(w_n) + n0 * prior.p_nlos) / (len(g) + n0)
+        self.p_nlos = float(np.clip(p, 0.02, 0.9))
+
+
+def normal_pdf(x: F64, mean: F64 | float, std: F64 | float) -> F64:
+    return np.exp(-0.5 * ((x - mean) / std) ** 2) / (math.sqrt(2 * math.pi) * std)
+
+
+def nlos_probability(
+    residual: F64, los_std: F64, nlos_mean: F64, nlos_std: F64, prior: F64,
+    extra_var: F64 | float = 0.0,
+) -> F64:
+    """Posterior NLOS probability of ranges from residuals e = measured - predicted (m).
+
+    residual (N,M); model arrays (M,); extra_var: position-induced variance added to both
+    components (m^2). NaN residuals give the prior.
+    """
+    los = np.sqrt(np.maximum(los_std, MIN_LOS_STD) ** 2 + extra_var)
+    nl = np.sqrt(nlos_std**2 + extra_var)
+    pn = prior * normal_pdf(residual, nlos_mean, nl)
+    pl = (1.0 - prior) * normal_pdf(residual, 0.0, los)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        p = pn / (pn + pl)
+    p = np.where(np.isfinite(p), p, np.where(residual > nlos_mean, 1.0, 0.0))
+    return np.where(np.isfinite(residual), p, np.broadcast_to(prior, residual.shape))
+
+
+def fit_nlos_mixture(
+    residual: F64, extra_var: F64, prior: NlosParams, n0: float, iterations: int = 8,
+) -> NlosParams:
+    """EM fit of the LOS/NLOS model to range residuals without ground truth.
+
+    residual (N,) m: measured minus predicted range (e.g. a filter's innovations), each with
+    the variance extra_var (N,) m^2 of its prediction added to both components. E-step:
+    `nlos_probability`; M-step: NLOS share and mean, and each component's spread with the
+    prediction variance taken out. `prior` counts as n0 ranges in every estimate (it holds
+    the model where the data say little). The NLOS mean is kept >= 0 (NLOS only lengthens
+    a range) and the LOS std within [MIN_LOS_STD, MAX_LOS_STD].
+    """
+    r = np.asarray(residual, dtype=np.float64)
+    s = np.asarray(extra_var, dtype=np.float64)
+    los, mu, nstd, pi = prior.los_std, prior.nlos_mean, prior.nlos_std, prior.nlos_prior
+    if len(r) == 0:
+        return prior
+    for _ in range(iterations):
+        g = nlos_probability(r, np.float64(los), np.float64(mu), np.float64(nstd),
+                             np.float64(pi), extra_var=s)
+        sg, sl = float(g.sum()), float(len(r) - g.sum())
+        pi = float(np.clip((sg + n0 * prior.nlos_prior) / (len(r) + n0), 0.01, 0.95))
+        mu = max((float(g @ r) + n0 * prior.nlos_mean) / (sg + n0), 0.0)
+        v_l = (float((1.0 - g) @ (r * r - s)) + n0 * prior.los_std**2) / (sl + n0)
+        d = r - mu
+        v_n = (float(g @ (d * d - s)) + n0 * prior.nlos_std**2) / (sg + n0)
+        los = float(np.clip(math.sqrt(max(v_l, 0.0)), MIN_LOS_STD, MAX_LOS_STD))
+        nstd = max(math.sqrt(max(v_n, 0.0)), los)
+
+    return NlosParams(los, mu, nstd, pi)
+
+
+def jump_log_likelihoods(
+    delta: np.ndarray, excess: np.ndarray, model: NlosModel
+) -> np.ndarray:
+    """log p(delta | s_prev, s) (N,2,2) of the change of an anchor's range residual between
+    two consecutive ranges (m), for s_prev, s in (LOS, NLOS); NaN delta (no usable previous
+    range) gives zeros.
+
+    Between two ranges a tenth of a second apart the odometry moves the tag accurately, so
+    the change of residual cancels a slowly varying pose error that the residual's level
+    cannot tell from NLOS: staying in a state changes it by noise only, entering NLOS
+    raises it by the anchor's NLOS excess (`excess`, m) and leaving NLOS lowers it by as
+    much. Gross outliers are floored as in `log_likelihoods`.
+    """
+    s_l, s_n = model.sigma_los, model.sigma_nlos
+    s_stay_l = math.sqrt(2.0) * s_l
+    s_stay_n = math.sqrt(2.0) * s_n
+    s_jump = math.sqrt(model.sigma_slow**2 + s_n**2 + s_l**2)
+    d = np.where(np.isnan(delta), 0.0, delta)  # finite otherwise (`residual_jumps`)
+    m = np.maximum(excess, 0.1)
+
+    def ll(x: np.ndarray, s: float) -> np.ndarray:
+        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, LOG_OUTLIER)
+
+    out = np.empty((len(d), 2, 2))
+    out[:, 0, 0] = ll(d, s_stay_l)
+    out[:, 0, 1] = ll(d - m, s_jump)
+    out[:, 1, 0] = ll(d + m, s_jump)
+    out[:, 1, 1] = ll(d, s_stay_n)
+    out[np.isnan(delta)] = 0.0
+    return out
+
+
+def residual_jumps(t_ns: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Change of residual (m) from each range to the next of the same anchor (time-ordered,
+    one anchor); NaN where the previous range is over JUMP_MAX_GAP_NS old or the change is
+    beyond JUMP_MAX_M (a gross outlier)."""
+    d = np.concatenate([[np.nan], np.diff(r)])
+    gap = np.concatenate([[np.iinfo(np.int64).max], np.diff(t_ns)])
+    d[(gap > JUMP_MAX_GAP_NS) | ~(np.abs(d) < JUMP_MAX_M)] = np.nan
+    return d
+
+
+def residual_jumps_by_anchor(
+    t_ns: np.ndarray, anchor: np.ndarray, r: np.ndarray,
+    lead_t: np.ndarray | None = None, lead_r: np.ndarray | None = None,
+) -> np.ndarray:
+    """`residual_jumps` of the ranges of several anchors at once, each anchor's ranges in
+    time order. `lead_t`, `lead_r` (indexed by anchor): each anchor's previous range (stamp
+    ns, residual m), which leads its chain; without them an anchor's first range has no
+    jump (NaN). One vectorised call instead of one per anchor."""
+    order = np.lexsort((t_ns, anchor))
+    a_s = anchor[order]
+    t_s = np.asarray(t_ns, np.int64)[order]
+    r_s = np.asarray(r, np.float64)[order]
+    first = np.concatenate([[True], a_s[1:] != a_s[:-1]]) if len(a_s) else np.zeros(0, bool)
+    # each range's predecessor: the previous range of its anchor, or the anchor's lead
+    t_prev, r_prev = np.empty_like(t_s), np.empty_like(r_s)
+    t_prev[1:], r_prev[1:] = t_s[:-1], r_s[:-1]
+    if lead_t is None or lead_r is None:  # a lead too old to count: the first jump is NaN
+        t_prev[first] = np.iinfo(np.int64).min // 2
+        r_prev[first] = 0.0
+    else:
+        t_prev[first], r_prev[first] = lead_t[a_s[first]], lead_r[a_s[first]]
+    d = r_s - r_prev  # as `residual_jumps` over each anchor's chain with its lead
+    d[((t_s - t_prev) > JUMP_MAX_GAP_NS) | ~(np.abs(d) < JUMP_MAX_M)] = np.nan
+    out = np.empty(len(t_ns))
+    out[order] = d
+    return out
+
+
+def hmm_filter(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
+    jump_ll: np.ndarray | None = None,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """Forward pass of one anchor's LOS/NLOS chain over its time-ordered ranges.
+
+    Returns P(NLOS) per range, the last value and the predicted prior of each range (with
+    the jump evidence, before the range's own level likelihood). Each step keeps the state
+    with probability 1 - p_switch and otherwise redraws it with the stationary rate
+    p_nlos; `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs each transition by the
+    change of residual it implies.
+    """
+    out = np.empty(len(ll_los))
+    priors = np.empty(len(ll_los))
+    p = p0
+    d = np.clip(ll_nlos - ll_los, -50.0, 50.0)
+    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
+    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
+    jl = None if jump_ll is None else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    for i in range(len(d)):
+        if jl is None:
+            prior = (1.0 - p_switch) * p + p_switch * p_nlos
+        else:
+            j = jl[i]
+            to_n = (1.0 - p) * t_ln * j[0, 1] + p * (1.0 - t_nl) * j[1, 1]
+            to_l = (1.0 - p) * (1.0 - t_ln) * j[0, 0] + p * t_nl * j[1, 0]
+            prior = to_n / max(to_n + to_l, 1e-300)
+        prior = min(max(prior, 1e-4), 1.0 - 1e-4)
+        priors[i] = prior
+        lo = math.log(prior / (1.0 - prior)) + d[i]
+        p = 1.0 / (1.0 + math.exp(-lo))
+        out[i] = p
+    return out, p, priors
+
+
+def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
+    """P(NLOS) from a prior probability and the two log-likelihoods (vectorised)."""
+    lo = np.log(prior / (1.0 - prior)) + np.clip(ll_nlos - ll_los, -50.0, 50.0)
+    return 1.0 / (1.0 + np.exp(-lo))
+
+
+def hmm_smooth(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float,
+    jump_ll: np.ndarray | None = None, p0: float | None = None,
+) -> np.ndarray:
+    """Forward-backward P(NLOS) per range of one anchor (time-ordered).
+
+    `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs the transition into each range;
+    `p0` is P(NLOS) of the first range before its own evidence (default: p_nlos).
+    """
+    n = len(ll_los)
+    if n == 0:
+        return np.zeros(0)
+    a = np.array([[1.0 - p_switch * p_nlos, p_switch * p_nlos],
+                  [p_switch * (1.0 - p_nlos), 1.0 - p_switch * (1.0 - p_nlos)]])
+    m = np.maximum(ll_los, ll_nlos)
+    e = np.stack([np.exp(ll_los - m), np.exp(ll_nlos - m)], axis=1)
+    # per-step transition matrices: `a`, each entry scaled by the jump evidence if any
+    if jump_ll is None:
+        tr = np.broadcast_to(a, (n, 2, 2))
+    else:
+        tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    t00, t01 = tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist()
+    t10, t11 = tr[:, 1, 0].tolist(), tr[:, 1, 1].tolist()
+    alpha = np.empty((n, 2))
+    q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
+    cur = np.array([1.0 - q0, q0]) * e[0]
+    alpha[0] = cur / cur.sum()
+    e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
+    x0, x1 = float(alpha[0, 0]), float(alpha[0, 1])
+    for i in range(1, n):
+        y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
+        y1 = (x0 * t01[i] + x1 * t11[i]) * e1[i]
+        s = max(y0 + y1, 1e-300)
+        x0, x1 = y0 / s, y1 / s
+        alpha[i, 0], alpha[i, 1] = x0, x1
+    post = np.empty(n)
+    post[-1] = alpha[-1, 1]
+    b0, b1 = 1.0, 1.0
+    for i in range(n - 2, -1, -1):
+        c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
+        j = i + 1
+        nb0, nb1 = t00[j] * c0 + t01[j] * c1, t10[j] * c0 + t11[j] * c1
+        s = max(nb0 + nb1, 1e-300)
+        b0, b1 = nb0 / s, nb1 / s
+        g0, g1 = alpha[i, 0] * b0, alpha[i, 1] * b1
+        post[i] = g1 / max(g0 + g1, 1e-300)
+    return post
