@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from uwbfuse.config import Config
+from uwbfuse.config import Config, NlosConfig
 from uwbfuse.streams import AnchorMap
 
 F64 = NDArray[np.float64]
@@ -76,6 +76,11 @@ class NlosParams:
         return [self.los_std, self.nlos_mean, self.nlos_std, self.nlos_prior]
 
 
+def _per_range(c: NlosConfig) -> NlosParams:
+    """The per-range model of an `[nlos]` section (range_* keys)."""
+    return NlosParams(c.range_los_std, c.range_nlos_mean, c.range_nlos_std, c.range_nlos_prior)
+
+
 @dataclass
 class NlosModel:
     """The range-error model (see the module docstring); lengths in metres, times in seconds.
@@ -92,7 +97,7 @@ class NlosModel:
     segment_s: float
     p_nlos: float
     p_switch: float
-    per_range: NlosParams = field(default_factory=lambda: NlosParams(0.026, 0.114, 0.145, 0.2))
+    per_range: NlosParams = field(default_factory=lambda: _per_range(NlosConfig()))
     per_anchor: dict[str, NlosParams] = field(default_factory=dict)
     samples: dict[str, int] = field(default_factory=dict)
 
@@ -102,9 +107,7 @@ class NlosModel:
         c = config.nlos
         per = {k: NlosParams(*map(float, v)) for k, v in c.anchor.items()}
         return cls(config.uwb.sigma, c.excess_sigma, c.excess_mean, c.excess_slow_sigma,
-                   c.tau, c.segment, c.rate, c.switch,
-                   NlosParams(c.range_los_std, c.range_nlos_mean, c.range_nlos_std,
-                              c.range_nlos_prior), per)
+                   c.tau, c.segment, c.rate, c.switch, _per_range(c), per)
 
     def arrays(self, anchors: AnchorMap) -> tuple[F64, F64, F64, F64]:
         """Per-range model (los_std, nlos_mean, nlos_std, nlos_prior), each (M,) in
