@@ -358,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     n = sub.add_parser(
         "calibrate-nlos",
-        help="fit the LOS/NLOS range-error model (Qiu 2022 eq. 8-9) for the wls method",
+        help="fit the per-range LOS/NLOS range-error model (Qiu 2022 eq. 8-9) for [nlos]",
     )
     n.add_argument("log", metavar="LOG", help="calibration log with ground truth")
     n.add_argument("--config", metavar="FILE", help=CONFIG_HELP)
