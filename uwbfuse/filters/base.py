@@ -509,7 +509,7 @@ class StreamingFilter(EstimatorBase):
     def bias_decay(self, t: float) -> tuple[F64, F64]:
         """First-order Gauss-Markov range biases over t seconds: the factor f (M,) on each
         bias and the variance (M,) m^2 of the noise added. Correlation time `bias_tau`
-        (`[graph] nlos_tau`, s); stationary variance p_a x nlos_std^2, with p_a the
+        (`[nlos] tau`, s); stationary variance p_a x nlos_std^2, with p_a the
         anchor's current NLOS probability (its chain state in `RangeNoise`) and nlos_std
         the NLOS spread of the mixture fitted to the log's innovations: a LOS anchor's bias
         is held (its ranges count at the radio's noise), an anchor behind an obstacle gets

@@ -332,7 +332,7 @@ class WlsEstimator(EstimatorBase):
 
     def use_range_priors(self, priors: RangePriors) -> None:
         """Take the learned classifier's P(NLOS) per range as the NLOS probabilities of the
-        weights (in place of those from the residuals and the [wls] histogram model)."""
+        weights (in place of those from the residuals and the per-range [nlos] model)."""
         self.fixer.priors = priors
 
     def step(self, t_ns: int) -> None:
