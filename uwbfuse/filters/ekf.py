@@ -35,7 +35,9 @@ widens it to the inputs the graph sees:
   consumer MEMS carried by hand errs far beyond its white noise (scale, misalignment,
   vibration), and a filter that trusts the datasheet figures becomes overconfident, gates
   good ranges and diverges (ISAS-Walk1: 2-D ATE 0.61 m at 1, 0.18 m at 30; simulated
-  MPU6050-grade logs lose 0.01-0.02 m).
+  MPU6050-grade logs lose 0.01-0.02 m). That figure is the floor: `make` runs the filter as
+  a `noise_bank.ProcessNoiseBank`, which takes the level (x 1, sqrt 10, 10) under which
+  the log's own innovations are most likely (`log_likelihood`).
 
 Speed (the target is 200x real time, ~25 us per 200 Hz IMU sample): the covariance is
 propagated once per window of at most 0.1 s (one window per 10 Hz output step), not per
