@@ -182,3 +182,21 @@ def test_an_nlos_anchor_gets_a_range_bias_and_a_los_one_none() -> None:
     ids = list(bias)
     assert bias[ids[0]] > 0.15
     assert all(abs(bias[i]) < 0.1 for i in ids[1:])
+
+
+def test_noise_bank_raises_the_process_noise_for_a_noisier_imu() -> None:
+    """test that the process-noise bank (`filters.noise_bank`) keeps the configured IMU
+    inflation on a log whose IMU follows the [imu] figures and leads with a larger one when
+    the log's IMU is 10x noisier than the inflated figures (UWB, IMU and wheels)"""
+    from uwbfuse.estimator import Method
+    from uwbfuse.pipeline import estimate
+    from uwbfuse.sim.simulator import simulate
+
+    chosen = []
+    for factor in (1.0, 300.0):
+        log = simulate("room", 30.0, 0, accel_noise_density=4.0e-3 * factor,
+                       gyro_noise_density=3.0e-4 * factor)
+        res = estimate(log, Method.EKF, Config())
+        chosen.append(res.report["imu_noise_inflation"])
+    assert chosen[0] == Config().filter.imu_noise_inflation
+    assert chosen[1] > chosen[0]

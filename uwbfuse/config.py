@@ -330,7 +330,9 @@ class FilterConfig(_Section):
         "the EKF/UKF process noise: room for what a consumer MEMS does beyond its white noise "
         "(scale, misalignment, vibration, timing) between 0.1 s windows; too tight a process "
         "noise makes the filter overconfident, gate good ranges and diverge (ISAS-Walk1: "
-        "ATE 0.6 m at 1, 0.18 m at 30); 1 = trust the [imu] figures as they are"
+        "ATE 0.6 m at 1, 0.18 m at 30); 1 = trust the [imu] figures as they are. The "
+        "IMU-driven filters take it as the floor: they run x 1, sqrt 10 and 10 of it and "
+        "answer with the level the log's innovations make most likely (`filters.noise_bank`)"
     )
     gate_probability: float = Field(
         0.999, gt=0, lt=1, description="chi-square innovation gate (0..1); 1 - p is rejected"

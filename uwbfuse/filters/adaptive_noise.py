@@ -94,6 +94,25 @@ def _nlos_probability_one(
     return p
 
 
+def mixture_log_density(
+    y: F64, los_std: float, nlos_mean: float, nlos_std: float, prior: F64, s: F64,
+) -> F64:
+    """Log predictive density (nats) of innovations y (m) with prediction variances s (m^2)
+    under the LOS/NLOS mixture with NLOS prior `prior` (floored at 1e-300: a gross outlier
+    that both components rule out counts as very unlikely, not as minus infinity)."""
+    los = np.sqrt(max(los_std, MIN_LOS_STD) ** 2 + s)
+    nl = np.sqrt(nlos_std**2 + s)
+    dens = ((1.0 - prior) * np.exp(-0.5 * (y / los) ** 2) / (_SQRT_2PI * los)
+            + prior * np.exp(-0.5 * ((y - nlos_mean) / nl) ** 2) / (_SQRT_2PI * nl))
+    return np.log(np.maximum(dens, 1e-300))
+
+
+def gaussian_log_density(y: F64, s: F64) -> float:
+    """Log density (nats) of innovations y (m,) under N(0, s) with s (m,m)."""
+    _, logdet = np.linalg.slogdet(s)
+    return -0.5 * (logdet + float(y @ np.linalg.solve(s, y)) + len(y) * math.log(2 * math.pi))
+
+
 class RangeNoise:
     """Per-range NLOS weighting and gating with a mixture fitted to the innovations."""
 
@@ -124,6 +143,10 @@ class RangeNoise:
         self._n = 0          # accepted ranges recorded so far
         self._since = 0      # accepted ranges since the last refit
         self.refits = 0
+        #: log predictive density (nats) of every range weighed so far, gated ones too,
+        #: under the model of its time: the range part of the filter's likelihood
+        #: (`noise_bank`)
+        self.log_likelihood = 0.0
 
     def set_start_scale(self, scale: float, refine: bool) -> None:
         """The start solve's common range scale: applied at once, and the prior of the fit.
@@ -158,6 +181,8 @@ class RangeNoise:
             prior = 1.0 / (1.0 + np.exp(-(np.log(prior / (1.0 - prior)) + evidence)))
         p = nlos_probability(y, np.float64(m.los_std), np.float64(m.nlos_mean),
                              np.float64(m.nlos_std), prior, extra_var=s)
+        self.log_likelihood += float(mixture_log_density(
+            y, m.los_std, m.nlos_mean, m.nlos_std, prior, s).sum())
         mu = m.nlos_mean
         var = (1.0 - p) * m.los_std**2 + p * m.nlos_std**2 + p * (1.0 - p) * mu * mu
         yc = y - p * mu
@@ -209,6 +234,11 @@ class RangeNoise:
         if evidence is not None:
             prior = 1.0 / (1.0 + math.exp(-(math.log(prior / (1.0 - prior)) + evidence)))
         p = _nlos_probability_one(y, m.los_std, m.nlos_mean, m.nlos_std, prior, s)
+        los = math.sqrt(max(m.los_std, MIN_LOS_STD) ** 2 + s)
+        nl = math.sqrt(m.nlos_std**2 + s)
+        dens = ((1.0 - prior) * math.exp(-0.5 * (y / los) ** 2) / (_SQRT_2PI * los)
+                + prior * math.exp(-0.5 * ((y - m.nlos_mean) / nl) ** 2) / (_SQRT_2PI * nl))
+        self.log_likelihood += math.log(max(dens, 1e-300))
         mu = m.nlos_mean
         var = (1.0 - p) * m.los_std**2 + p * m.nlos_std**2 + p * (1.0 - p) * mu * mu
         yc = y - p * mu

@@ -45,7 +45,11 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
-from uwbfuse.filters.adaptive_noise import InnovationVariance, RangeNoise
+from uwbfuse.filters.adaptive_noise import (
+    InnovationVariance,
+    RangeNoise,
+    gaussian_log_density,
+)
 from uwbfuse.filters.base import InitialiserLike, build_filter
 from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
 from uwbfuse.filters.models import (
@@ -98,7 +102,7 @@ def _unscented_update(
     noise: RangeNoise | None, anchor: np.ndarray,
     row_noise: list[tuple[InnovationVariance, int]] | None = None,
     evidence: F64 | None = None,
-) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray]:
+) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray, float]:
     """Update from sigma-point states and predicted measurements.
 
     ex (2n+1, n): sigma-point state deviations from the central point; zs (2n+1, m):
@@ -109,8 +113,9 @@ def _unscented_update(
     r; the rows after them (wheel speeds, planar constraint) feed `row_noise` in order:
     (estimator, number of rows) per block. Returns the correction of the central point (n,),
     the posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
-    normalised innovations squared of the ranges and which of those measured short (negative
-    innovation). `evidence` (len(anchor),): the NLOS classifier's log-odds per range, nats.
+    normalised innovations squared of the ranges, which of those measured short (negative
+    innovation) and the log density (nats) of the rows after the ranges. `evidence`
+    (len(anchor),): the NLOS classifier's log-odds per range, nats.
     """
     nr = len(anchor)
     ex_mean = wts.wm @ ex
@@ -135,13 +140,14 @@ def _unscented_update(
         est.update(y[start : start + n_rows], s_all[start : start + n_rows])
         start += n_rows
     pzz[np.diag_indices_from(pzz)] += r
+    row_ll = gaussian_log_density(y[nr:], pzz[nr:, nr:]) if len(y) > nr else 0.0
     if not np.any(keep):
-        return ex_mean, p_prior, y, keep, nis, short
+        return ex_mean, p_prior, y, keep, nis, short, row_ll
     pzz = pzz[np.ix_(keep, keep)]
     pxz = (dx.T * wts.wc) @ dz[:, keep]
     k = np.linalg.solve(pzz, pxz.T).T
     p_new = p_prior - k @ pzz @ k.T
-    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep, nis, short
+    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep, nis, short, row_ll
 
 
 class ErrorStateUkf(ErrorStateEkf):
@@ -229,12 +235,13 @@ class ErrorStateUkf(ErrorStateEkf):
         used = np.ones(nr, dtype=bool)
         corr = ex_mean
         if zs:
-            corr, p_prior, self.y, keep, nis, self.short = _unscented_update(
+            corr, p_prior, self.y, keep, nis, self.short, row_ll = _unscented_update(
                 wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
                 p_prior, self.range_noise, ra, noise, self.range_evidence(rt, ra),
             )
             used = keep[:nr]
             self.nis = nis
+            self.row_log_likelihood += row_ll
         self.P = p_prior
         self.R, self.v, self.p = rs[0, -1], vs[0, -1], ps[0, -1]
         self._inject(corr[:N_ERR])
@@ -312,7 +319,7 @@ class UnicycleUkf(UnicycleEkf):
             zs = np.sqrt(dx_ * dx_ + dy_ * dy_ + dz_ * dz_)
             if nb:
                 zs = zs + bias[:, ra]
-            corr, p_prior, y, used, self.nis, self.short = _unscented_update(
+            corr, p_prior, y, used, self.nis, self.short, _ = _unscented_update(
                 wts, ex, zs, rr, np.zeros(nr), p_prior, self.range_noise, ra,
                 evidence=self.range_evidence(rt, ra),
             )
@@ -342,4 +349,9 @@ def make(
     """Factory of the method registry (`uwbfuse.methods`)."""
     if method is not Method.UKF:
         raise EstimatorError(f"uwbfuse.filters.ukf cannot build method {method.value}")
-    return make_filter(config, anchors, streams)
+    est = make_filter(config, anchors, streams)
+    if isinstance(est, ErrorStateUkf):  # the IMU process-noise level from the log
+        from uwbfuse.filters.noise_bank import ProcessNoiseBank
+
+        return ProcessNoiseBank(est)
+    return est
