@@ -80,6 +80,7 @@ _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
+_RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
 RANGE_SCALE_MIN_ERROR = 0.02
 """A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
 RANGE_SCALE_MIN_EFFECT_M = 0.5
@@ -800,7 +801,7 @@ class Initialiser:
             w0=w0, sens=sens, dtr=dtr, anc=anc, anc_col=anc_col, rr=rr, sig=sig, lev0=lev0,
             prior=prior, sens_sigma=trk.sens_sigma, b_sigma=b_sigma, z_prior=z_prior,
             z_sigma=z_sigma, solve_v=solve_v, n_k=n_k, n_s=n_s, n_b=n_b)
-        i_v, n_unk, n_r = problem.i_v, problem.n, len(rr)
+        i_v, n_unk = problem.i_v, problem.n
 
         tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
         v_seed = np.zeros(3)
@@ -809,109 +810,36 @@ class Initialiser:
             span = tf[k - 1] - tf[0]
             if span > 0:
                 v_seed = (pf[k - 1] - pf[0]) / span
-        sols = []
+        seeds = []
         for yaw_s in np.linspace(-np.pi, np.pi, _N_SEEDS, endpoint=False):
             x0 = np.zeros(n_unk)
             x0[:3] = tag_seed - rot_z(yaw_s) @ lev0
             x0[3] = yaw_s
             if solve_v:
                 x0[i_v:i_v + 3] = v_seed
-            sol = robust_lm(problem.fun_jac, x0, n_r, _SOFT_L1_SCALE)
-            if sol is not None:
-                sols.append(sol)
+            seeds.append(x0)
+        sols = solve_seeds(problem, seeds)
         if not sols:
             self.last_reason = "heading solve failed"
             return None
-        return self._accept_heading(sols, problem, trk, t_ns, w_start, motion_start, max_win,
-                                    gyro_bias, accel_bias, still_ok and at_rest)
+        verdict = accept_start(sols, problem, trk, t_ns, w_start, motion_start, max_win,
+                               gyro_bias, accel_bias, still_ok and at_rest, cfg.max_yaw_sigma)
+        return self._take(verdict)
 
-    def _accept_heading(
-        self, sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int,
-        w_start: int, motion_start: int | None, max_win: float, gyro_bias: F64,
-        accel_bias: F64, still: bool,
-    ) -> InitialState | None:
-        """The start state at t_ns from the heading solve's local minima `sols` (over the
-        window from `w_start` ns), or None while the heading is not yet determined (its
-        acceptance rule: consistent residuals, and a determined yaw with no close rival
-        minimum or a full window waited)."""
-        cfg = self.config.init
-        rr, sig = problem.rr, problem.sig
-        i_k, i_v, i_s, i_b, n_unk = problem.i_k, problem.i_v, problem.i_s, problem.i_b, problem.n
-        n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
-        ts0 = w_start / NS_PER_S
-        t_now = t_ns / NS_PER_S
-        sols.sort(key=lambda s: s.cost)
-        best = sols[0]
-        yaw_best = _wrap(best.x[3])
-        rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > math.radians(20)]
-        dof = max(n_r - n_unk, 1)
-        res = best.fun[:n_r]
-        mad = float(np.median(np.abs(res))) * 1.4826
-        scale2 = max(1.0, 2.0 * best.cost / dof)
-        try:
-            cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
-        except np.linalg.LinAlgError:
-            self.last_reason = "heading solve singular"
+    def _take(self, verdict: StartVerdict) -> InitialState | None:
+        """Record a start solve's verdict (candidate, range scale, reason); its state if
+        accepted."""
+        self.last_reason = verdict.reason
+        if verdict.state is None:
             return None
-        yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
-        # On large sites the range errors grow with the range (multipath, scale): the
-        # allowed spread is the larger of 3 sigma and _MAX_MAD_REL of the median range.
-        lim = max(3.0, _MAX_MAD_REL * float(np.median(rr)) / sig)
-        inliers = float(np.mean(np.abs(res) < lim))
-        margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
-        x = best.x
-        p0, yaw0 = x[:3], float(x[3])
-        v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
-        dt_now = t_now - ts0
-        rz = rot_z(yaw0)
-        d_now = trk.d[-1] + (trk.sens[-1] @ x[i_s:i_b] if n_s else 0.0)
-        pos = p0 + v0 * dt_now + rz @ d_now
-        r_now = rz @ trk.rot[-1]
-        vel = v0 + rz @ trk.vel[-1]
-        ba, bg = accel_bias.copy(), gyro_bias.copy()
-        if n_s:
-            ba = ba + x[i_s:i_s + 3]
-            bg = bg + x[i_s + 3:i_s + 6]
-        # Position std at t_ns: the solved covariance mapped through pos(x).
-        grad = np.zeros((3, n_unk))
-        grad[:, :3] = np.eye(3)
-        drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
-                        [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
-        grad[:, 3] = drz @ d_now
-        if solve_v:
-            grad[:, i_v:i_v + 3] = np.eye(3) * dt_now
-        if n_s:
-            grad[:, i_s:i_b] = rz @ trk.sens[-1]
-        pcov = grad @ cov @ grad.T
-        pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
-        # Reported stds are inflated: range errors are time-correlated (slow NLOS), which
-        # the white-noise covariance ignores (simulated NLOS sites: errors up to ~4x).
-        state = InitialState(
-            t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
-            gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
-            yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still,
-            range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
-            range_sigma=max(mad, 1.0) * sig,
-        )
-        consistent = mad <= lim and inliers >= 0.6
-        self.range_scale = state.range_scale
-        if consistent:
-            self._candidate = state
-        # After a full window without a determined heading, start anyway with the best
-        # solution and its (large) yaw std: the estimator must start from what it has.
-        waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
-            motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
-        determined = yaw_sigma <= cfg.max_yaw_sigma and margin >= 9.0
-        if not consistent or not (determined or waited):
-            self.last_reason = (
-                f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
-                f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})"
-            )
+        self.range_scale = verdict.state.range_scale
+        if verdict.consistent:
+            self._candidate = verdict.state
+        if not verdict.accepted:
             return None
-        log.debug("initialised at %.3f s: yaw %.1f deg (std %.2f deg)", t_now,
-                  math.degrees(state.yaw), math.degrees(yaw_sigma))
-        self.last_reason = "initialised"
-        return state
+        log.debug("initialised at %.3f s: yaw %.1f deg", verdict.state.t_ns / NS_PER_S,
+                  math.degrees(verdict.state.yaw))
+        return verdict.state
 
     # ------------------------------------------------------------------ UWB only
     def _uwb_only(self, t_ns: int, rng: tuple) -> InitialState | None:
@@ -1041,6 +969,111 @@ def robust_lm(
     if not np.all(np.isfinite(x)):
         return None
     return LmResult(x, cost, f, jac * np.sqrt(w)[:, None])
+
+
+@dataclass(frozen=True)
+class StartVerdict:
+    """`accept_start` result: the best solution's state at t_ns (None when the solve was
+    singular), whether its residuals are consistent, whether it is accepted as the start,
+    and the reason (for logs and `Initialiser.last_reason`)."""
+
+    state: InitialState | None
+    consistent: bool
+    accepted: bool
+    reason: str
+
+
+def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
+    """The start solve: `robust_lm` (soft-L1 at _SOFT_L1_SCALE range sigmas) from each
+    seed x0 of `problem`'s unknowns; the local minima found."""
+    sols = []
+    for x0 in seeds:
+        sol = robust_lm(problem.fun_jac, x0, len(problem.rr), _SOFT_L1_SCALE)
+        if sol is not None:
+            sols.append(sol)
+    return sols
+
+
+def accept_start(
+    sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int, w_start: int,
+    motion_start: int | None, max_win: float, gyro_bias: F64, accel_bias: F64, still: bool,
+    max_yaw_sigma: float,
+) -> StartVerdict:
+    """The one acceptance rule of every start solve (`Initialiser`'s heading solve, the
+    sparse-range `start.solve_start`): the state at t_ns from the local minima `sols` of
+    `problem` over the window from `w_start` ns, accepted when its residuals are
+    consistent (robust spread within 3 range sigmas or _MAX_MAD_REL of the median range,
+    60 % inliers) and its yaw is determined (std <= max_yaw_sigma rad, no rival minimum
+    20 degrees away within _RIVAL_MARGIN of chi-square) or a full window of max_win s has
+    been waited."""
+    rr, sig = problem.rr, problem.sig
+    i_k, i_v, i_s, i_b, n_unk = problem.i_k, problem.i_v, problem.i_s, problem.i_b, problem.n
+    n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
+    ts0 = w_start / NS_PER_S
+    t_now = t_ns / NS_PER_S
+    sols.sort(key=lambda s: s.cost)
+    best = sols[0]
+    yaw_best = _wrap(best.x[3])
+    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > math.radians(20)]
+    dof = max(n_r - n_unk, 1)
+    res = best.fun[:n_r]
+    mad = float(np.median(np.abs(res))) * 1.4826
+    scale2 = max(1.0, 2.0 * best.cost / dof)
+    try:
+        cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
+    except np.linalg.LinAlgError:
+        return StartVerdict(None, False, False, "heading solve singular")
+    yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
+    # On large sites the range errors grow with the range (multipath, scale): the
+    # allowed spread is the larger of 3 sigma and _MAX_MAD_REL of the median range.
+    lim = max(3.0, _MAX_MAD_REL * float(np.median(rr)) / sig)
+    inliers = float(np.mean(np.abs(res) < lim))
+    margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
+    x = best.x
+    p0, yaw0 = x[:3], float(x[3])
+    v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
+    dt_now = t_now - ts0
+    rz = rot_z(yaw0)
+    d_now = trk.d[-1] + (trk.sens[-1] @ x[i_s:i_b] if n_s else 0.0)
+    pos = p0 + v0 * dt_now + rz @ d_now
+    r_now = rz @ trk.rot[-1]
+    vel = v0 + rz @ trk.vel[-1]
+    ba, bg = accel_bias.copy(), gyro_bias.copy()
+    if n_s:
+        ba = ba + x[i_s:i_s + 3]
+        bg = bg + x[i_s + 3:i_s + 6]
+    # Position std at t_ns: the solved covariance mapped through pos(x).
+    grad = np.zeros((3, n_unk))
+    grad[:, :3] = np.eye(3)
+    drz = np.array([[-math.sin(yaw0), -math.cos(yaw0), 0.0],
+                    [math.cos(yaw0), -math.sin(yaw0), 0.0], [0.0, 0.0, 0.0]])
+    grad[:, 3] = drz @ d_now
+    if solve_v:
+        grad[:, i_v:i_v + 3] = np.eye(3) * dt_now
+    if n_s:
+        grad[:, i_s:i_b] = rz @ trk.sens[-1]
+    pcov = grad @ cov @ grad.T
+    pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
+    # Reported stds are inflated: range errors are time-correlated (slow NLOS), which
+    # the white-noise covariance ignores (simulated NLOS sites: errors up to ~4x).
+    state = InitialState(
+        t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
+        gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
+        yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still,
+        range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
+        range_sigma=max(mad, 1.0) * sig,
+    )
+    consistent = mad <= lim and inliers >= 0.6
+    # After a full window without a determined heading, start anyway with the best
+    # solution and its (large) yaw std: the estimator must start from what it has.
+    waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
+        motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
+    determined = yaw_sigma <= max_yaw_sigma and margin >= _RIVAL_MARGIN
+    if not consistent or not (determined or waited):
+        reason = (f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
+                  f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
+        return StartVerdict(state, consistent, False, reason)
+    return StartVerdict(state, consistent, True, "initialised")
 
 
 def _wrap(a: float) -> float:
