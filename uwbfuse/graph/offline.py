@@ -573,6 +573,44 @@ def heldout_log_score(
     return np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
 
 
+def _run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+            max_iterations: int) -> gtsam.LevenbergMarquardtOptimizer:
+    """Levenberg-Marquardt over `graph` from `initial` at the batch's tolerances; the
+    optimiser is returned after `optimize()` (its values, error and iteration count)."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(LM_RELATIVE_TOL)
+    params.setAbsoluteErrorTol(1e-6)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    opt.optimize()
+    return opt
+
+
+def _smooth_per_anchor(ll_los: np.ndarray, ll_nlos: np.ndarray, anchor: np.ndarray,
+                       order: np.ndarray, inv: np.ndarray, mix: NlosModel) -> np.ndarray:
+    """E-step: each range's NLOS responsibility from its LOS and NLOS log-likelihoods, one
+    two-state HMM smoothing per anchor over its ranges in time (`order` sorts the ranges
+    by anchor then time, `inv` undoes it)."""
+    a_sorted = anchor[order]
+    gs = np.empty(len(order))
+    ll_ls, ll_ns = ll_los[order], ll_nlos[order]
+    for a in np.unique(a_sorted):
+        sel = np.flatnonzero(a_sorted == a)
+        gs[sel] = hmm_smooth(ll_ls[sel], ll_ns[sel], mix.p_switch, mix.p_nlos)
+    return gs[inv]
+
+
+def _initial_state_values(states: _NlosStates, st_idx: np.ndarray, g: np.ndarray,
+                          r_los: np.ndarray, bias: np.ndarray, mu_nlos: float) -> np.ndarray:
+    """Each NLOS state's start (m, over the range's anchor offset `bias`): the
+    responsibility-weighted mean excess of its ranges, `mu_nlos` where they weigh less
+    than half a range."""
+    num = np.bincount(st_idx, weights=g * r_los, minlength=len(states.keys))
+    den = np.bincount(st_idx, weights=g, minlength=len(states.keys))
+    return bias[states.anchor] + np.where(
+        den > 0.5, np.clip(num / np.maximum(den, 1e-9), 0.0, 1.5), mu_nlos)
+
+
 def _solve_em(
     cfg: Config,
     base_graph: gtsam.NonlinearFactorGraph,
@@ -617,16 +655,16 @@ def _solve_em(
             return np.zeros(n_anchor)
         return np.array([vals.atDouble(D(a)) for a in range(n_anchor)])
 
-    h = predicted_ranges(values, rec, anchors, n_kf)
-    r_los = rec["z"] - h - bias_values(values)[a_r]
+    def residuals(vals: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted ranges and LOS residuals (m) at `vals`."""
+        h = predicted_ranges(vals, rec, anchors, n_kf)
+        return h, rec["z"] - h - bias_values(vals)[a_r]
+
+    h, r_los = residuals(values)
     g = rec["g_online"].copy() if g_cfg.nlos else np.zeros(len(h))
     if states is not None and st_idx is not None:
-        # initial NLOS states: responsibility-weighted mean excess of their ranges
-        d = bias_values(values)
-        num = np.bincount(st_idx, weights=g * r_los, minlength=len(states.keys))
-        den = np.bincount(st_idx, weights=g, minlength=len(states.keys))
-        states.values = d[states.anchor] + np.where(
-            den > 0.5, np.clip(num / np.maximum(den, 1e-9), 0.0, 1.5), mix.mu_nlos)
+        states.values = _initial_state_values(states, st_idx, g, r_los,
+                                              bias_values(values), mix.mu_nlos)
     # EM runs with the LOS biases D(a) frozen at their prior mean (0): left free, a mostly
     # blocked anchor trades its NLOS excess against D(a) and EM settles in a biased basin.
     # One final LM round with the last responsibilities then calibrates D(a) (and C).
@@ -674,24 +712,18 @@ def _solve_em(
             _cap_anchor_bias_sigma(graph, n_anchor, g_cfg.range_bias_anchor_sigma)
         factors.add_to(graph, rec["z"], sig_l, 1.0 - g,
                        mix.sigma_nlos if states is not None else None, g)
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(max_it or g_cfg.lm_max_iterations)
-        params.setRelativeErrorTol(LM_RELATIVE_TOL)
-        params.setAbsoluteErrorTol(1e-6)
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, vals, params)
-        out = opt.optimize()
+        opt = _run_lm(graph, vals, max_it or g_cfg.lm_max_iterations)
         total_it += opt.iterations()
         log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
                   opt.error(), mix)
-        return out
+        return opt.values()
 
     e_var = mix.sigma_slow**2 if nlos_first else 0.03**2
     if nlos_first and states is not None:
         # NLOS-first start: every range on its anchor's excess state only, so no range is
         # committed to zero bias before the first E-step (see `solve`)
         values = lm_round(values, np.ones(len(h)), freeze, EM_ROUND_LM_ITERATIONS)
-        h = predicted_ranges(values, rec, anchors, n_kf)
-        r_los = rec["z"] - h - bias_values(values)[a_r]
+        h, r_los = residuals(values)
         states.values = np.array([values.atDouble(k) for k in states.keys])
     for it in range(rounds):
         if states is not None and st_idx is not None:
@@ -707,13 +739,7 @@ def _solve_em(
                                              mix, e_var, ll_l, ll_n)
             if it == 0:  # the learned classifier's log-odds start EM (patent S6: then the
                 ll_n = ll_n + rec["evidence"]  # fused track re-estimates the NLOS ranges)
-            a_sorted = a_r[order]
-            gs = np.empty(len(order))
-            ll_ls, ll_ns = ll_l[order], ll_n[order]
-            for a in np.unique(a_sorted):
-                sel = np.flatnonzero(a_sorted == a)
-                gs[sel] = hmm_smooth(ll_ls[sel], ll_ns[sel], mix.p_switch, mix.p_nlos)
-            g = gs[inv]
+            g = _smooth_per_anchor(ll_l, ll_n, a_r, order, inv, mix)
             mix.m_step(r_los, r_nlos, g, prior)
             sig_l = mix.sigma_los
         if g_prev is not None and np.mean(np.abs(g - g_prev) > 0.2) < 0.01:
@@ -722,8 +748,7 @@ def _solve_em(
         done = it + 1
         # intermediate EM rounds only need LM to get close: the next E-step moves anyway
         values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
-        h = predicted_ranges(values, rec, anchors, n_kf)
-        r_los = rec["z"] - h - bias_values(values)[a_r]
+        h, r_los = residuals(values)
         if with_scale:
             refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
                         common_scale)
@@ -733,23 +758,20 @@ def _solve_em(
             states.values = np.array([values.atDouble(k) for k in states.keys])
     for _ in range(2 if with_scale else 0):  # scale and geometry settle together
         values = lm_round(values, g, freeze)
-        h = predicted_ranges(values, rec, anchors, n_kf)
-        r_los = rec["z"] - h - bias_values(values)[a_r]
+        h, r_los = residuals(values)
         refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
                         common_scale)
         rec["z"] = z_raw / (1.0 + scale[a_r])
     if freeze:
         values = lm_round(values, g, False)
-        h = predicted_ranges(values, rec, anchors, n_kf)
-        r_los = rec["z"] - h - bias_values(values)[a_r]
+        h, r_los = residuals(values)
     # the wheel scale is fitted once the range biases are free: fitted in the EM rounds,
     # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
         wheel_scale.refit(values, n_kf)
         if wheel_scale.apply([base_graph, *static.values()]):
             values = lm_round(values, g, False)
-            h = predicted_ranges(values, rec, anchors, n_kf)
-            r_los = rec["z"] - h - bias_values(values)[a_r]
+            h, r_los = residuals(values)
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
 
     def marginals() -> tuple[gtsam.NonlinearFactorGraph, np.ndarray]:
@@ -915,10 +937,4 @@ def motion_fit_error(
                               np.asarray(rec["tag_in_kf"], float), strict=True):
         graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
                                      gtsam.Pose3(gtsam.Rot3(), tag)))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.graph.lm_max_iterations)
-    params.setRelativeErrorTol(LM_RELATIVE_TOL)
-    params.setAbsoluteErrorTol(1e-6)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
-    opt.optimize()
-    return float(opt.error())
+    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
