@@ -18,6 +18,7 @@ built once."""
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import math
 from collections.abc import Callable
@@ -26,7 +27,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from uwbfuse.config import Config, RobustKernel, UwbConfig
+from uwbfuse.config import Config, GraphConfig, RobustKernel, UwbConfig
 from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_sigma
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
@@ -611,6 +612,86 @@ def _initial_state_values(states: _NlosStates, st_idx: np.ndarray, g: np.ndarray
         den > 0.5, np.clip(num / np.maximum(den, 1e-9), 0.0, 1.5), mu_nlos)
 
 
+class _EmGraphs:
+    """The graphs of one EM + LM run: the base graph with the LOS offsets' freeze and the
+    NLOS state priors (built once per freeze setting), the ranges added at the current
+    responsibilities; counts the LM iterations."""
+
+    def __init__(self, g_cfg: GraphConfig, base_graph: gtsam.NonlinearFactorGraph,
+                 d0: np.ndarray, states: _NlosStates | None, mix: NlosModel,
+                 factors: _RangeFactors, with_bias: bool) -> None:
+        self.g_cfg = g_cfg
+        self.base_graph = base_graph
+        self.d0 = d0  # LOS offsets D(a) (m) the freeze holds them at
+        self.states = states
+        self.mix = mix
+        self.factors = factors
+        self.with_bias = with_bias
+        self.static: dict[bool, gtsam.NonlinearFactorGraph] = {}
+        self.iterations = 0
+
+    def static_graph(self, frozen: bool) -> gtsam.NonlinearFactorGraph:
+        """Base graph, the D(a) freeze (when frozen) and the NLOS state priors (built once)."""
+        if frozen not in self.static:
+            graph = gtsam.NonlinearFactorGraph(self.base_graph)
+            if frozen:
+                tight = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)
+                for a in range(len(self.d0)):
+                    graph.add(gtsam.PriorFactorDouble(D(a), float(self.d0[a]), tight))
+            if self.states is not None:
+                st = self.states
+                for i, key in enumerate(st.keys):
+                    prev = st.keys[st.prev[i]] if st.prev[i] >= 0 else None
+                    nlos_state_factors(graph, key, float(self.d0[st.anchor[i]]), prev,
+                                       self.mix)
+            self.static[frozen] = graph
+        return self.static[frozen]
+
+    def with_ranges(self, frozen: bool, z: np.ndarray, sigma_los: float, w_los: np.ndarray,
+                    w_nlos: np.ndarray) -> gtsam.NonlinearFactorGraph:
+        """The static graph plus every range (`z` m, LOS sigma `sigma_los` m) weighted
+        `w_los` on its LOS offset and `w_nlos` on its NLOS state."""
+        graph = gtsam.NonlinearFactorGraph(self.static_graph(frozen))
+        if not frozen and self.with_bias:
+            _cap_anchor_bias_sigma(graph, len(self.d0), self.g_cfg.range_bias_anchor_sigma)
+        self.factors.add_to(graph, z, sigma_los, w_los,
+                            self.mix.sigma_nlos if self.states is not None else None, w_nlos)
+        return graph
+
+    def lm_round(self, vals: gtsam.Values, z: np.ndarray, sigma_los: float, g: np.ndarray,
+                 frozen: bool, max_it: int | None = None) -> gtsam.Values:
+        """One LM solve at NLOS responsibilities `g` from `vals`."""
+        opt = _run_lm(self.with_ranges(frozen, z, sigma_los, 1.0 - g, g), vals,
+                      max_it or self.g_cfg.lm_max_iterations)
+        self.iterations += opt.iterations()
+        log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
+                  opt.error(), self.mix)
+        return opt.values()
+
+
+def _em_marginals(
+    graphs: _EmGraphs, values: gtsam.Values, rec: dict[str, np.ndarray], anchors: np.ndarray,
+    n_kf: int, h: np.ndarray, r_los: np.ndarray, g: np.ndarray, sigma_los: float,
+    st_idx: np.ndarray | None,
+) -> tuple[gtsam.NonlinearFactorGraph, np.ndarray]:
+    """The final LM round's graph, each range's factors scaled by the share of its
+    information that survives the LOS/NLOS ambiguity (`observed_information_share`),
+    and the assignments' spread (`hypothesis_shift_moments`)."""
+    mix, states = graphs.mix, graphs.states
+    share = np.ones(len(g))
+    # the robust model has no classes: its every range counts as LOS (g = 0) against
+    # the mixture's NLOS alternative, with the LOS sigma it was fitted with
+    search_mix = copy.copy(mix)
+    search_mix.sigma_los = sigma_los
+    moment = hypothesis_shift_moments(values, rec, anchors, n_kf, r_los, g, search_mix)
+    if states is not None and st_idx is not None:
+        e_fit = np.array([values.atDouble(k) for k in states.keys])
+        share = observed_information_share(r_los, rec["z"] - h - e_fit[st_idx], g,
+                                           sigma_los, mix.sigma_nlos)
+    graph = graphs.with_ranges(False, rec["z"], sigma_los, (1.0 - g) * share, g * share)
+    return graph, moment
+
+
 def _solve_em(
     cfg: Config,
     base_graph: gtsam.NonlinearFactorGraph,
@@ -626,7 +707,12 @@ def _solve_em(
     common_scale: bool = False,
 ) -> BatchResult:
     """One EM + LM run from the online trajectory, or NLOS-first (see `solve`);
-    `common_scale`: the range scale (when estimated) is one for every anchor."""
+    `common_scale`: the range scale (when estimated) is one for every anchor.
+
+    Long (about 150 lines) because the EM rounds, the scale settling, the LOS offsets'
+    release and the wheel-scale round share the run's state (values, responsibilities,
+    scales); its graphs (`_EmGraphs`), E-step (`_smooth_per_anchor`) and marginals
+    (`_em_marginals`) live apart."""
     g_cfg = cfg.graph
     uwb = cfg.uwb
     if wheel_scale is not None:  # its wheel factors are replaced: keep the caller's intact
@@ -675,7 +761,6 @@ def _solve_em(
             values.update(D(a), 0.0)
     rounds = max(g_cfg.em_iterations, 0) + 1 if g_cfg.nlos else 1
     g_prev: np.ndarray | None = None
-    total_it = 0
     done = 0
     r_nlos = np.zeros(len(h))
     sig_l = mix.sigma_los if g_cfg.nlos else uwb.sigma
@@ -683,40 +768,15 @@ def _solve_em(
     factors = _RangeFactors(rec, a_r, uwb, with_bias,
                             None if states is None or st_idx is None
                             else [states.keys[i] for i in st_idx.tolist()])
-    static: dict[bool, gtsam.NonlinearFactorGraph] = {}
     if states is not None:
         for i, key in enumerate(states.keys):
             values.insert(key, float(states.values[i]))
 
-    def static_graph(frozen: bool) -> gtsam.NonlinearFactorGraph:
-        """Base graph, the D(a) freeze (when frozen) and the NLOS state priors (built once)."""
-        if frozen not in static:
-            graph = gtsam.NonlinearFactorGraph(base_graph)
-            if frozen:
-                tight = gtsam.noiseModel.Isotropic.Sigma(1, 1e-4)
-                for a in range(n_anchor):
-                    graph.add(gtsam.PriorFactorDouble(D(a), float(d0[a]), tight))
-            if states is not None:
-                for i, key in enumerate(states.keys):
-                    prev = states.keys[states.prev[i]] if states.prev[i] >= 0 else None
-                    nlos_state_factors(graph, key, float(d0[states.anchor[i]]), prev, mix)
-            static[frozen] = graph
-        return static[frozen]
+    graphs = _EmGraphs(g_cfg, base_graph, d0, states, mix, factors, with_bias)
 
-    def lm_round(
-        vals: gtsam.Values, g: np.ndarray, frozen: bool, max_it: int | None = None
-    ) -> gtsam.Values:
-        nonlocal total_it
-        graph = gtsam.NonlinearFactorGraph(static_graph(frozen))
-        if not frozen and with_bias:
-            _cap_anchor_bias_sigma(graph, n_anchor, g_cfg.range_bias_anchor_sigma)
-        factors.add_to(graph, rec["z"], sig_l, 1.0 - g,
-                       mix.sigma_nlos if states is not None else None, g)
-        opt = _run_lm(graph, vals, max_it or g_cfg.lm_max_iterations)
-        total_it += opt.iterations()
-        log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
-                  opt.error(), mix)
-        return opt.values()
+    def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool,
+                 max_it: int | None = None) -> gtsam.Values:
+        return graphs.lm_round(vals, rec["z"], sig_l, g, frozen, max_it)
 
     e_var = mix.sigma_slow**2 if nlos_first else 0.03**2
     if nlos_first and states is not None:
@@ -769,37 +829,18 @@ def _solve_em(
     # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
         wheel_scale.refit(values, n_kf)
-        if wheel_scale.apply([base_graph, *static.values()]):
+        if wheel_scale.apply([base_graph, *graphs.static.values()]):
             values = lm_round(values, g, False)
             h, r_los = residuals(values)
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
-
-    def marginals() -> tuple[gtsam.NonlinearFactorGraph, np.ndarray]:
-        """The final LM round's graph, each range's factors scaled by the share of its
-        information that survives the LOS/NLOS ambiguity (`observed_information_share`),
-        and the assignments' spread (`hypothesis_shift_moments`)."""
-        graph = gtsam.NonlinearFactorGraph(static_graph(False))
-        if with_bias:
-            _cap_anchor_bias_sigma(graph, n_anchor, g_cfg.range_bias_anchor_sigma)
-        share = np.ones(len(g))
-        # the robust model has no classes: its every range counts as LOS (g = 0) against
-        # the mixture's NLOS alternative, with the LOS sigma it was fitted with
-        search_mix = copy.copy(mix)
-        search_mix.sigma_los = sig_l
-        moment = hypothesis_shift_moments(values, rec, anchors, n_kf, r_los, g, search_mix)
-        if states is not None and st_idx is not None:
-            e_fit = np.array([values.atDouble(k) for k in states.keys])
-            share = observed_information_share(r_los, rec["z"] - h - e_fit[st_idx], g,
-                                               sig_l, mix.sigma_nlos)
-        factors.add_to(graph, rec["z"], sig_l, (1.0 - g) * share,
-                       mix.sigma_nlos if states is not None else None, g * share)
-        return graph, moment
 
     nlos_out = None
     if states is not None:
         nlos_out = (states.anchor.copy(), states.seg.copy(),
                     np.array([values.atDouble(k) for k in states.keys]))
-    return BatchResult(values, g, w, r_los, mix, done, total_it, scale,
+    marginals = functools.partial(_em_marginals, graphs, values, rec, anchors, n_kf, h, r_los,
+                                  g, sig_l, st_idx)
+    return BatchResult(values, g, w, r_los, mix, done, graphs.iterations, scale,
                        nlos_first and states is not None,
                        None if wheel_scale is None else wheel_scale.applied.copy(),
                        nlos_states=nlos_out,
