@@ -267,6 +267,8 @@ def _cmd_collisions(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The command line: one declaration per subcommand and option (long because it is a
+    table; each subcommand's behaviour lives in its own module)."""
     p = argparse.ArgumentParser(
         prog="uwbfuse",
         description="Factor-graph localisation from IMU, wheel odometry and UWB ranges.",

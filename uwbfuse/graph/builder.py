@@ -272,6 +272,8 @@ class GraphBuilder:
         record: bool,
         seeding: bool | None = None,
     ) -> None:
+        """Declares the builder's whole state (long because every attribute the smoother
+        reads is set here once rather than scattered over methods)."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
