@@ -661,7 +661,6 @@ class GraphEstimator(EstimatorBase):
                                     self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
                                     has_wheel=b.has_wheel, with_scale=b.with_scale,
                                     wheel=b.wheel_records,
-                                    online_verdict=b.prequential_verdict(),
                                     planar=b.planar)
 
     def _complete_wheel_records(self) -> None:

@@ -48,9 +48,6 @@ log = logging.getLogger(__name__)
 
 # LM iterations of an intermediate EM round: only close enough for the next E-step
 EM_ROUND_LM_ITERATIONS = 6
-# online NLOS share from which batch EM starts NLOS-first (wheeled logs): a threshold
-# between scenarios, still to be replaced by a choice from the data (see docs/results.md)
-HEAVY_NLOS_SHARE = 0.27
 # E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`): a stretch is
 # scored against another assignment when it explains the ranges by this many nats more
 BATCH_SEARCH = True
@@ -303,33 +300,27 @@ def solve(
     has_wheel: bool = True,
     with_scale: bool = False,
     wheel: WheelRecords | None = None,
-    online_verdict: str | None = None,
     planar: bool = True,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
-    `graph.range_model = "auto"`: where the online pass's prequential test found the
-    mixture significantly better (`online_verdict` "mixture") it is fitted alone, where it
-    found the robust model better ("robust") the robust candidates alone; otherwise
-    held-out cross-validation (`_cross_validated`) chooses among the candidates (the
-    online verdict is the pass's own, whose trajectory differs from batch's fits).
+    `graph.range_model = "auto"`: held-out cross-validation (`_cross_validated`) chooses
+    among the candidates.
 
     EM from the online trajectory classifies each range against a trajectory that, where
     most anchors are blocked at once, has already been pulled towards the NLOS ranges: they
-    then fit as LOS and EM stays in that basin. Under heavy NLOS (the online pass called at
-    least HEAVY_NLOS_SHARE of the ranges NLOS) EM therefore starts NLOS-first: one LM round
-    with every range on its anchor's NLOS excess state only (no range committed to zero
-    bias), then the E-steps. Where NLOS is lighter the online trajectory is the better
-    start (measured on the real logs: the NLOS-first trajectory, with every anchor's bias
-    free, is looser without strong odometry). `with_scale`: refine the per-anchor range
-    scales, starting from `scale0` (the online pass's). NLOS-first needs wheel odometry to hold the
+    then fit as LOS and EM stays in that basin. With wheel odometry EM therefore starts
+    NLOS-first: one LM round with every range on its anchor's NLOS excess state only (no
+    range committed to zero bias), then the E-steps; where NLOS is light the E-steps bring
+    the ranges back to LOS, and where the anchors' constant offsets pass for NLOS, the
+    robust candidate wins the held-out choice. NLOS-first needs the odometry to hold the
     track's shape while every range floats on its excess state: without wheels (a handheld
-    IMU + UWB log) EM always starts online (ISAS-Walk1, online NLOS share 0.52: 0.19 m
-    online, 0.24 m NLOS-first).
+    IMU + UWB log) EM starts from the online trajectory (ISAS-Walk1: 0.19 m online, 0.24 m
+    NLOS-first). `with_scale`: refine the per-anchor range scales, starting from `scale0`
+    (the online pass's).
     """
-    share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
     problem = _Problem(cfg, base_graph, anchors, n_kf, t0_ns, wheel,
-                       nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
+                       nlos_first=cfg.graph.nlos and has_wheel)
     scale0 = scale0 if with_scale else None
     if not cfg.graph.nlos or len(rec["z"]) == 0:
         # no NLOS modelling asked for (the configured kernel and sigma), or no ranges at all
@@ -341,18 +332,12 @@ def solve(
     candidates = {m.name: m for m in RANGE_MODELS if scale0 is not None or not m.common_scale}
     if cfg.graph.range_model != "auto":
         return problem.fit(candidates[cfg.graph.range_model], rec, initial, model, scale0)
-    if online_verdict == "mixture" or not (planar or anchors_observe_height(anchors)):
-        # the online pass already scored the mixture decisively better; or the height is
-        # free and the anchors coplanar, so a common range offset trades against the
-        # tag's height, and the robust model (its offsets free from the start) takes that
-        # null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no held-out range
-        # can show
+    if not (planar or anchors_observe_height(anchors)):
+        # the height is free and the anchors coplanar, so a common range offset trades
+        # against the tag's height, and the robust model (its offsets free from the start)
+        # takes that null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no
+        # held-out range can show
         candidates = {n: m for n, m in candidates.items() if m.nlos}
-    elif online_verdict == "robust":
-        # likewise the other way: the online pass scored the robust model decisively better
-        # (a paired test over the one-step residuals of every range, not an eighth of
-        # them; docs/results.md, "ISAS-Walk1 batch")
-        candidates = {n: m for n, m in candidates.items() if not m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))
@@ -537,14 +522,21 @@ def heldout_log_score(
 ) -> np.ndarray:
     """Log predictive density (nats) of each held-out range under `fit`: its trajectory
     (the held-out stretches bridged by the motion factors), range calibration and error
-    model. The mixture predicts a range's NLOS excess from its anchor's nearest NLOS state
-    in time (its uncertainty growing along the Gauss-Markov chain) and its NLOS
-    probability from the neighbouring training ranges; the robust model by its Huber
-    density. Both keep the mixture's gross-outlier floor."""
+    model. The mixture predicts a range's NLOS excess from the excess distribution its
+    NLOS states show over the whole log (`fitted_excess`), and its NLOS probability from
+    the neighbouring training ranges; the robust model by its Huber density. Both keep the
+    mixture's gross-outlier floor.
+
+    The NLOS states are the mixture's local free parameters, one per anchor and segment:
+    carried into the held-out stretch, the nearest state predicts a range from its
+    neighbours' residuals whatever the track, and the held-out test no longer sees the
+    track (Labyrinth's NLOS-first fit, anchors 105 and 107 in NLOS on every range, won it
+    with its track 0.095 m off; docs/results.md)."""
     a = test["anchor"].astype(np.int64)
     h = predicted_ranges(fit.values, test, anchors, n_kf)
     z = test["z"] / (1.0 + fit.scale[a])
-    r_los = z - h - _bias_values(fit.values, len(anchors))[a]
+    bias = _bias_values(fit.values, len(anchors))
+    r_los = z - h - bias[a]
     mix = fit.mixture
     if fit.range_model == "robust" or fit.nlos_states is None:
         if cfg.uwb.robust_kernel.value == "huber":
@@ -553,25 +545,35 @@ def heldout_log_score(
             ll = (-0.5 * (r_los / mix.sigma_los) ** 2 - math.log(mix.sigma_los)
                   - 0.5 * math.log(2.0 * math.pi))
         return np.logaddexp(ll, LOG_OUTLIER)
-    st_a, st_s, st_v = fit.nlos_states
-    seg_ns = round(mix.segment_s * NS_PER_S)
-    seg = (test["t_ns"] - t0_ns) // seg_ns
-    code = st_a.astype(np.int64) * (1 << 40) + st_s
-    q = a * (1 << 40) + seg
-    pos = np.searchsorted(code, q)
-    lo, hi = np.clip(pos - 1, 0, len(code) - 1), np.clip(pos, 0, len(code) - 1)
-    gap_lo = np.where(st_a[lo] == a, np.abs(st_s[lo] - seg), np.iinfo(np.int64).max)
-    gap_hi = np.where(st_a[hi] == a, np.abs(st_s[hi] - seg), np.iinfo(np.int64).max)
-    near = np.where(gap_lo <= gap_hi, lo, hi)
-    gap = np.minimum(gap_lo, gap_hi)
-    known = gap < np.iinfo(np.int64).max
-    d = _bias_values(fit.values, len(anchors))[a]
-    excess = np.where(known, st_v[near], d + mix.mu_nlos)
-    var = np.where(known, np.minimum(mix.chain_sigma**2 * np.maximum(gap, 1), mix.sigma_slow**2),
-                   mix.sigma_slow**2)
-    ll_l, ll_n = mix.log_likelihoods(r_los, z - h - excess, var)
+    mu, var = fitted_excess(fit, train, bias, t0_ns)
+    ll_l, ll_n = mix.log_likelihoods(r_los, r_los - mu, var)
     p = np.clip(_nearest_responsibility(train, test, fit.nlos_prob), 1e-3, 1.0 - 1e-3)
     return np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
+
+
+def fitted_excess(fit: BatchResult, train: dict[str, np.ndarray], bias: np.ndarray,
+                  t0_ns: int) -> tuple[float, float]:
+    """Mean (m) and variance (m^2) of the NLOS excess over the LOS offset `bias` (per
+    anchor, m) across the fit's NLOS states, each weighted by its training ranges'
+    responsibilities; the model's prior (mu_nlos, sigma_slow^2) where the states carry
+    less than one range. The variance is floored at SIGMA_LOS_MIN^2: one state's spread
+    is never known better than a LOS range."""
+    mix = fit.mixture
+    if fit.nlos_states is None:
+        return mix.mu_nlos, mix.sigma_slow**2
+    st_a, st_s, st_v = fit.nlos_states
+    code = st_a.astype(np.int64) * (1 << 40) + st_s
+    seg_ns = round(mix.segment_s * NS_PER_S)
+    q = train["anchor"].astype(np.int64) * (1 << 40) + (train["t_ns"] - t0_ns) // seg_ns
+    idx = np.clip(np.searchsorted(code, q), 0, max(len(code) - 1, 0))
+    hit = code[idx] == q if len(code) else np.zeros(len(q), bool)
+    w = np.bincount(idx[hit], weights=fit.nlos_prob[hit], minlength=len(code))
+    if w.sum() < 1.0:
+        return mix.mu_nlos, mix.sigma_slow**2
+    excess = st_v - bias[st_a]
+    mu = float(np.sum(w * excess) / w.sum())
+    var = float(np.sum(w * (excess - mu) ** 2) / w.sum())
+    return mu, max(var, SIGMA_LOS_MIN**2)
 
 
 def _run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
