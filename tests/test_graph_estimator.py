@@ -123,7 +123,7 @@ def test_nlos_modelling_beats_huber_alone():
     huber_only = Config()
     huber_only.graph.nlos = False
     res = estimate(log, Method.BATCH, with_model)
-    assert res.report["batch"]["em_start"] == "nlos-first"  # online NLOS share 0.3+
+    assert res.report["batch"]["em_start"] == "nlos-first"  # a wheeled log
     a = _ate(res.trajectory, log)
     b = _ate(estimate(log, Method.BATCH, huber_only).trajectory, log)
     e = _ate(estimate(log, Method.EKF, with_model).trajectory, log)
@@ -145,9 +145,12 @@ def test_range_bias_is_recovered():
     cfg = Config()
     cfg.graph.range_bias_anchor_sigma = 0.3
     res = estimate(log, Method.BATCH, cfg)
-    assert res.report["batch"]["em_start"] == "online"
+    # no NLOS in this log: the held-out choice takes the robust model (measured 2.153
+    # against the mixture's 2.119 nats per range), every range LOS
+    assert res.report["batch"]["range_model"] == "robust"
+    assert all(v["nlos"] == 0 for v in res.report["anchors"].values())
     est = np.array([res.report["anchors"][a]["bias_m"] for a in log.anchors.ids])
-    assert np.max(np.abs(est - sim.anchor_offset)) < 0.03  # measured 0.008
+    assert np.max(np.abs(est - sim.anchor_offset)) < 0.03  # measured 0.003
     # widened past the default, the prior is used as given online too (not held to 2 cm)
     online = estimate(log, Method.ISAM2, cfg)
     est = np.array([online.report["anchors"][a]["bias_m"] for a in log.anchors.ids])

@@ -374,7 +374,7 @@ class GraphBuilder:
         self._pq_sum = 0.0
         self._pq_sum2 = 0.0
         # new ranges weighted as the robust model (no NLOS states) where it is configured;
-        # `auto` keeps the mixture online and hands the verdict to batch: switched online on
+        # `auto` keeps the mixture online (batch chooses by held-out ranges): switched online on
         # early evidence, the graph lost more where the mixture later proved right (factory)
         # than it gained where it did not (Plaza)
         self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
@@ -936,8 +936,9 @@ class GraphBuilder:
         self, r_los: np.ndarray, ll_l: np.ndarray, ll_n: np.ndarray, prior: np.ndarray
     ) -> None:
         """Score the new ranges (before they are used) under both range models
-        (prequential): the online counterpart of batch's held-out choice, whose verdict
-        (`prequential_verdict`) batch takes (`graph.range_model = "auto"`). Only ranges a
+        (prequential): the online counterpart of batch's held-out choice, reported only
+        (`prequential_verdict`): it depends on how far ahead the one-step predictions
+        reach, that is on the update cadence (docs/results.md). Only ranges a
         lag after the start are scored (before, the one-step predictions come from a graph
         still settling its start), once the robust sigma has MIN_PREQUENTIAL_RANGES
         residuals behind it."""

@@ -90,7 +90,7 @@ class BatchResult:
     rounds: int
     lm_iterations: int
     scale: np.ndarray
-    nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
+    nlos_first: bool = False  # EM started NLOS-first (wheeled logs, see `solve`)
     wheel_scale: np.ndarray | None = None  # (v, omega) odometry scale factors, None: no wheels
     # NLOS excess states (anchor index, segment, value m) of the mixture model, else None
     nlos_states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
