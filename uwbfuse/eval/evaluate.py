@@ -18,7 +18,7 @@ import numpy as np
 
 from uwbfuse.errors import EvaluationError
 from uwbfuse.eval.align import Alignment, RigidTransform, fit_alignment
-from uwbfuse.eval.associate import associate
+from uwbfuse.eval.associate import Association, associate
 from uwbfuse.eval.metrics import (
     COVERAGE_MAX_GAP_S,
     Stats,
@@ -203,24 +203,7 @@ def evaluate(
     in time or fewer than MIN_PAIRS poses associate.
     """
     kind = Alignment.parse(align)
-    if max_dt < 0:
-        raise EvaluationError(f"max_dt must be >= 0 s, got {max_dt}")
-    if len(est) == 0:
-        raise EvaluationError(f"{est_name}: no poses")
-    if len(gt) == 0:
-        raise EvaluationError(f"{gt_name}: no poses")
-    max_dt_ns = round(max_dt * NS_PER_S)
-    if est.t_ns[-1] < gt.t_ns[0] - max_dt_ns or est.t_ns[0] > gt.t_ns[-1] + max_dt_ns:
-        raise EvaluationError(
-            f"no overlap in time: {est_name} covers {_span(est)}, {gt_name} covers {_span(gt)}"
-        )
-    pairs = associate(est, gt, max_dt)
-    if len(pairs) < MIN_PAIRS:
-        raise EvaluationError(
-            f"too few associated poses: {len(pairs)} of {est_name} lie within {max_dt} s of "
-            f"{gt_name} (need {MIN_PAIRS}); check the stamps or raise --max-dt"
-        )
-
+    pairs = _associated(est, gt, max_dt, est_name, gt_name)
     notes: list[str] = []
     transform = fit_alignment(kind, pairs.est_position, pairs.gt_position)
     est_pos, est_quat = transform.apply(pairs.est_position, pairs.est_quat_xyzw)
@@ -238,26 +221,12 @@ def evaluate(
         raise EvaluationError(f"{est_name}: errors against {gt_name} are not finite "
                               f"({kind.value} alignment): the poses are too far apart")
 
-    rpe: list[RpeResult] = []
     oriented = gt.has_orientation and est.has_orientation
-    relation = "translation_part" if oriented else "map_displacement"
-    rpe_gt_quat = gt_quat if oriented else None
     if not oriented:
         which = "ground truth" if not gt.has_orientation else "estimate"
         notes.append(f"RPE uses map-frame displacements: {which} has no orientation")
-    for delta, unit, (i, j) in (
-        (rpe_time_s, "s", pairs_by_time(pairs.t_ns, rpe_time_s)),
-        (rpe_dist_m, "m", pairs_by_path(gt_pos, rpe_dist_m)),
-    ):
-        errs = (
-            rpe_errors(i, j, est_pos, est_quat, gt_pos, rpe_gt_quat)
-            if len(i)
-            else np.zeros(0)
-        )
-        if len(i) == 0:
-            what = "time span" if unit == "s" else "ground-truth path"
-            notes.append(f"RPE {delta:g} {unit}: no pose pairs ({what} too short)")
-        rpe.append(RpeResult(delta, unit, relation, i, j, pairs.t_ns[i], errs, stats(errs)))
+    rpe = _relative_errors(pairs.t_ns, est_pos, est_quat, gt_pos,
+                           gt_quat if oriented else None, rpe_time_s, rpe_dist_m, notes)
 
     yaw_err: F64 | None = None
     yaw_stats: Stats | None = None
@@ -301,3 +270,47 @@ def evaluate(
         est_rate_hz=in_span / span_s if span_s > 0 else math.nan,
         notes=notes,
     )
+
+
+def _associated(est: PoseStream, gt: PoseStream, max_dt: float, est_name: str,
+                gt_name: str) -> Association:
+    """The associated pose pairs (`associate`), or EvaluationError when either stream is
+    empty, they do not overlap in time or fewer than MIN_PAIRS poses associate."""
+    if max_dt < 0:
+        raise EvaluationError(f"max_dt must be >= 0 s, got {max_dt}")
+    if len(est) == 0:
+        raise EvaluationError(f"{est_name}: no poses")
+    if len(gt) == 0:
+        raise EvaluationError(f"{gt_name}: no poses")
+    max_dt_ns = round(max_dt * NS_PER_S)
+    if est.t_ns[-1] < gt.t_ns[0] - max_dt_ns or est.t_ns[0] > gt.t_ns[-1] + max_dt_ns:
+        raise EvaluationError(
+            f"no overlap in time: {est_name} covers {_span(est)}, {gt_name} covers {_span(gt)}"
+        )
+    pairs = associate(est, gt, max_dt)
+    if len(pairs) < MIN_PAIRS:
+        raise EvaluationError(
+            f"too few associated poses: {len(pairs)} of {est_name} lie within {max_dt} s of "
+            f"{gt_name} (need {MIN_PAIRS}); check the stamps or raise --max-dt"
+        )
+    return pairs
+
+
+def _relative_errors(
+    t_ns: np.ndarray, est_pos: F64, est_quat: F64, gt_pos: F64, gt_quat: F64 | None,
+    rpe_time_s: float, rpe_dist_m: float, notes: list[str],
+) -> list[RpeResult]:
+    """RPE over `rpe_time_s` seconds and over `rpe_dist_m` metres of GT path (translation
+    part with `gt_quat`, map-frame displacements without); a note per empty one."""
+    relation = "translation_part" if gt_quat is not None else "map_displacement"
+    rpe: list[RpeResult] = []
+    for delta, unit, (i, j) in (
+        (rpe_time_s, "s", pairs_by_time(t_ns, rpe_time_s)),
+        (rpe_dist_m, "m", pairs_by_path(gt_pos, rpe_dist_m)),
+    ):
+        errs = rpe_errors(i, j, est_pos, est_quat, gt_pos, gt_quat) if len(i) else np.zeros(0)
+        if len(i) == 0:
+            what = "time span" if unit == "s" else "ground-truth path"
+            notes.append(f"RPE {delta:g} {unit}: no pose pairs ({what} too short)")
+        rpe.append(RpeResult(delta, unit, relation, i, j, t_ns[i], errs, stats(errs)))
+    return rpe
