@@ -130,17 +130,9 @@ def write_mcap(
     log_time = np.asarray(log_time, dtype=np.int64)
     if n and np.any(np.diff(log_time) < 0):
         raise ValueError("messages must be sorted by log time")
-    pos = 0
-
-    def put(b: bytes) -> int:
-        nonlocal pos
-        start = pos
-        f.write(b)
-        pos += len(b)
-        return start
-
-    put(MAGIC)
-    put(_record(OP_HEADER, _s(profile) + _s(library)))
+    out = _Output(f)
+    out.put(MAGIC)
+    out.put(_record(OP_HEADER, _s(profile) + _s(library)))
     schema_recs = [
         _record(OP_SCHEMA, struct.pack("<H", i + 1) + _s(s.name) + _s(s.encoding)
                 + struct.pack("<I", len(s.data)) + s.data)
@@ -152,53 +144,22 @@ def write_mcap(
         for i, c in enumerate(channels)
     ]
     for r in schema_recs + channel_recs:
-        put(r)
+        out.put(r)
 
-    # chunks
     lengths = np.fromiter(map(len, datas), dtype=np.int64, count=n)
-    ends = np.cumsum(lengths + _MSG_HEAD)
-    bounds = [0]
-    if n:
-        cuts = np.searchsorted(ends, np.arange(chunk_size, int(ends[-1]), chunk_size),
-                               side="left") + 1
-        bounds += [int(c) for c in np.unique(cuts) if 0 < c < n]
-    bounds.append(n)
-    chunk_indexes: list[bytes] = []
-    for a, b in itertools.pairwise(bounds):
-        if b <= a:
-            continue
-        cids, lt = channel_ids[a:b], log_time[a:b]
-        records, offsets = _message_records(cids, lt, datas[a:b])
-        packed = _compress(compression, records)
-        body = (struct.pack("<QQQI", int(lt[0]), int(lt[-1]), len(records),
-                            zlib.crc32(records)) + _s(compression)
-                + struct.pack("<Q", len(packed)))
-        chunk_start = put(_record(OP_CHUNK, body + packed))
-        chunk_len = pos - chunk_start
-        index_offsets = {}
-        for cid in np.unique(cids).tolist():
-            sel = cids == cid
-            pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
-            pairs[:, 0] = lt[sel]
-            pairs[:, 1] = offsets[sel]
-            index_offsets[cid] = put(_record(
-                OP_MESSAGE_INDEX,
-                struct.pack("<HI", cid, pairs.nbytes) + pairs.tobytes()))
-        index_len = pos - chunk_start - chunk_len
-        offs_map = b"".join(struct.pack("<HQ", c, o) for c, o in index_offsets.items())
-        chunk_indexes.append(_record(OP_CHUNK_INDEX, (
-            struct.pack("<QQQQ", int(lt[0]), int(lt[-1]), chunk_start, chunk_len)
-            + struct.pack("<I", len(offs_map)) + offs_map
-            + struct.pack("<Q", index_len) + _s(compression)
-            + struct.pack("<QQ", len(packed), len(records)))))
+    bounds = _chunk_bounds(lengths, chunk_size)
+    chunk_indexes = [
+        _write_chunk(out, channel_ids[a:b], log_time[a:b], datas[a:b], compression)
+        for a, b in itertools.pairwise(bounds) if b > a
+    ]
 
     metadata_indexes = []
     for name, data in metadata:
         rec = _record(OP_METADATA, _s(name) + _map_ss(data))
-        off = put(rec)
+        off = out.put(rec)
         metadata_indexes.append(_record(OP_METADATA_INDEX,
                                         struct.pack("<QQ", off, len(rec)) + _s(name)))
-    put(_record(OP_DATA_END, struct.pack("<I", 0)))
+    out.put(_record(OP_DATA_END, struct.pack("<I", 0)))
 
     # summary section
     counts = np.bincount(channel_ids, minlength=len(channels) + 1)
@@ -209,9 +170,73 @@ def write_mcap(
                     len(chunk_indexes))
         + struct.pack("<QQ", int(log_time[0]) if n else 0, int(log_time[-1]) if n else 0)
         + struct.pack("<I", len(stats_map)) + stats_map))
-    groups = [(OP_SCHEMA, schema_recs), (OP_CHANNEL, channel_recs), (OP_STATISTICS, [stats]),
-              (OP_CHUNK_INDEX, chunk_indexes), (OP_METADATA_INDEX, metadata_indexes)]
-    summary_start = pos
+    _write_summary(out, [(OP_SCHEMA, schema_recs), (OP_CHANNEL, channel_recs),
+                         (OP_STATISTICS, [stats]), (OP_CHUNK_INDEX, chunk_indexes),
+                         (OP_METADATA_INDEX, metadata_indexes)])
+    out.put(MAGIC)
+
+
+class _Output:
+    """The file being written and the byte offset reached (records point at offsets)."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.pos = 0
+
+    def put(self, b: bytes) -> int:
+        """Write `b`; its start offset."""
+        start = self.pos
+        self.f.write(b)
+        self.pos += len(b)
+        return start
+
+
+def _chunk_bounds(lengths: NDArray[np.int64], chunk_size: int) -> list[int]:
+    """Message index bounds of the chunks: a chunk ends once its records pass
+    `chunk_size` uncompressed bytes."""
+    n = len(lengths)
+    bounds = [0]
+    if n:
+        ends = np.cumsum(lengths + _MSG_HEAD)
+        cuts = np.searchsorted(ends, np.arange(chunk_size, int(ends[-1]), chunk_size),
+                               side="left") + 1
+        bounds += [int(c) for c in np.unique(cuts) if 0 < c < n]
+    bounds.append(n)
+    return bounds
+
+
+def _write_chunk(out: _Output, cids: NDArray[np.uint16], lt: NDArray[np.int64],
+                 datas: Sequence[bytes], compression: str) -> bytes:
+    """Write one chunk of messages and its message indexes; its chunk index record."""
+    records, offsets = _message_records(cids, lt, datas)
+    packed = _compress(compression, records)
+    body = (struct.pack("<QQQI", int(lt[0]), int(lt[-1]), len(records),
+                        zlib.crc32(records)) + _s(compression)
+            + struct.pack("<Q", len(packed)))
+    chunk_start = out.put(_record(OP_CHUNK, body + packed))
+    chunk_len = out.pos - chunk_start
+    index_offsets = {}
+    for cid in np.unique(cids).tolist():
+        sel = cids == cid
+        pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
+        pairs[:, 0] = lt[sel]
+        pairs[:, 1] = offsets[sel]
+        index_offsets[cid] = out.put(_record(
+            OP_MESSAGE_INDEX,
+            struct.pack("<HI", cid, pairs.nbytes) + pairs.tobytes()))
+    index_len = out.pos - chunk_start - chunk_len
+    offs_map = b"".join(struct.pack("<HQ", c, o) for c, o in index_offsets.items())
+    return _record(OP_CHUNK_INDEX, (
+        struct.pack("<QQQQ", int(lt[0]), int(lt[-1]), chunk_start, chunk_len)
+        + struct.pack("<I", len(offs_map)) + offs_map
+        + struct.pack("<Q", index_len) + _s(compression)
+        + struct.pack("<QQ", len(packed), len(records))))
+
+
+def _write_summary(out: _Output, groups: list[tuple[int, list[bytes]]]) -> None:
+    """Write the summary section (the record groups, then their summary offsets) and the
+    footer with the CRC over both."""
+    summary_start = out.pos
     summary = bytearray()
     offsets_recs = []
     for op, recs in groups:
@@ -225,6 +250,5 @@ def write_mcap(
     summary += b"".join(offsets_recs)
     footer_head = struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, summary_offset_start)
     crc = zlib.crc32(bytes(summary) + footer_head)
-    put(bytes(summary))
-    put(footer_head + struct.pack("<I", crc))
-    put(MAGIC)
+    out.put(bytes(summary))
+    out.put(footer_head + struct.pack("<I", crc))
