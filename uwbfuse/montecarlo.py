@@ -361,6 +361,41 @@ def _json_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     ]
 
 
+def _checked_inputs(
+    scenario: str, runs: int, duration_s: float, methods: str | Sequence[str | Method],
+    times_s: Sequence[float], align: str | StartAlignment, dims: int,
+) -> tuple[StartAlignment, list[Method], tuple[float, ...]]:
+    """`montecarlo`'s arguments checked before any cluster starts (FleetError, one line):
+    the start alignment, the methods and the scoring times within `duration_s`."""
+    from uwbfuse.methods import available_methods
+    from uwbfuse.sim.scenarios import get_scenario
+
+    get_scenario(scenario)  # unknown scenario: one clear error
+    if dims not in (2, 3):
+        raise FleetError(f"dims must be 2 (horizontal) or 3, got {dims}")
+    if runs < 1:
+        raise FleetError(f"--runs must be at least 1, got {runs}")
+    if not (duration_s > 0 and math.isfinite(duration_s)):
+        raise FleetError(f"--duration must be a positive number of seconds, got {duration_s}")
+    try:
+        start_align = StartAlignment(align)
+    except ValueError:
+        choices = ", ".join(a.value for a in StartAlignment)
+        raise FleetError(f"unknown alignment {align!r}; one of: {choices}") from None
+    chosen = parse_methods(methods)
+    available = set(available_methods())
+    missing = [m.value for m in chosen if m not in available]
+    if missing:
+        raise FleetError(f"method {missing[0]} is not available in this installation")
+    times = tuple(float(t) for t in times_s if 0 < float(t) <= duration_s)
+    if not times:
+        raise FleetError(
+            f"--duration {duration_s:g} s is shorter than the first scoring time "
+            f"({min(times_s):g} s)"
+        )
+    return start_align, list(chosen), times
+
+
 def montecarlo(
     scenario: str = "warehouse",
     runs: int = 20,
@@ -390,32 +425,8 @@ def montecarlo(
     `uwbfuse.fleet.batch_run`. A failing run or method fails its own rows only.
     """
     tic = time.perf_counter()
-    from uwbfuse.methods import available_methods
-    from uwbfuse.sim.scenarios import get_scenario
-
-    get_scenario(scenario)  # unknown scenario: one clear error before any cluster starts
-    if dims not in (2, 3):
-        raise FleetError(f"dims must be 2 (horizontal) or 3, got {dims}")
-    if runs < 1:
-        raise FleetError(f"--runs must be at least 1, got {runs}")
-    if not (duration_s > 0 and math.isfinite(duration_s)):
-        raise FleetError(f"--duration must be a positive number of seconds, got {duration_s}")
-    try:
-        start_align = StartAlignment(align)
-    except ValueError:
-        choices = ", ".join(a.value for a in StartAlignment)
-        raise FleetError(f"unknown alignment {align!r}; one of: {choices}") from None
-    chosen = parse_methods(methods)
-    available = set(available_methods())
-    missing = [m.value for m in chosen if m not in available]
-    if missing:
-        raise FleetError(f"method {missing[0]} is not available in this installation")
-    times = tuple(float(t) for t in times_s if 0 < float(t) <= duration_s)
-    if not times:
-        raise FleetError(
-            f"--duration {duration_s:g} s is shorter than the first scoring time "
-            f"({min(times_s):g} s)"
-        )
+    start_align, chosen, times = _checked_inputs(scenario, runs, duration_s, methods, times_s,
+                                                 align, dims)
     config = load_config(config_path)
     sha = config_digest(config)
     out = Path(out_dir)
