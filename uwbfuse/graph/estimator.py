@@ -58,7 +58,7 @@ from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.uwb import los_subset_search
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
-from uwbfuse.nlos import hmm_smooth, jump_log_likelihoods, residual_jumps_by_anchor
+from uwbfuse.nlos import NlosModel, hmm_smooth, jump_log_likelihoods, residual_jumps_by_anchor
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -354,6 +354,43 @@ class GraphEstimator(EstimatorBase):
         (an escape from the local optimum that EM alone stays in).
         """
         now = b.time_of(b.k)
+        batches, poses = self._reviewable(sm, b, now)
+        if not batches:
+            return
+        mix = b.mixture
+        if b.smoothed_sigma_los is not None:  # residuals at the smoothed estimate
+            mix = copy.copy(mix)
+            mix.sigma_los = b.smoothed_sigma_los
+        anchor = np.concatenate([rb.anchor for rb in batches])
+        z = np.concatenate([rb.z for rb in batches])
+        t = np.concatenate([rb.t_ns for rb in batches])
+        prior = np.concatenate([rb.prior for rb in batches])
+        p = np.concatenate([rb.tag_kf @ poses[rb.ka][:3, :3].T + poses[rb.ka][:3, 3]
+                            for rb in batches])
+        h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
+        d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
+        e = self._smoothed_excess(sm, b, anchor, np.concatenate([rb.seg for rb in batches]),
+                                  d + mix.mu_nlos)
+        r_los = z - h - d
+        r_nlos = z - h - e
+        g_cur = np.concatenate([rb.g for rb in batches])
+        if SEARCH:
+            r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur)
+        ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
+        ll_n = ll_n + np.concatenate([rb.evidence for rb in batches])  # the classifier's
+        g = np.empty(len(z))
+        sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
+        jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
+        for sel in sels:
+            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
+                                float(prior[sel[0]]))
+        self._replace_moved(b, batches, now, g, g_cur, e, r_los)
+
+    def _reviewable(self, sm: OnlineSmoother, b: GraphBuilder, now: int
+                    ) -> tuple[list[ReviewBatch], dict[int, np.ndarray]]:
+        """The range batches `_review` classifies again (old enough, clear of what the
+        next update marginalises; older ones leave the queue) and their keyframes' smoothed
+        poses (4x4, map frame)."""
         # the replacements go in with the next update, which adds `_chunk` keyframes and
         # marginalises by as much: stay clear of what it will remove
         margin = REVIEW_MARGIN_S + self._chunk / self.cfg.graph.keyframe_rate
@@ -372,22 +409,12 @@ class GraphEstimator(EstimatorBase):
                 except (RuntimeError, IndexError):
                     continue
             batches.append(rb)
-        if not batches:
-            return
-        mix = b.mixture
-        if b.smoothed_sigma_los is not None:  # residuals at the smoothed estimate
-            mix = copy.copy(mix)
-            mix.sigma_los = b.smoothed_sigma_los
-        anchor = np.concatenate([rb.anchor for rb in batches])
-        z = np.concatenate([rb.z for rb in batches])
-        seg = np.concatenate([rb.seg for rb in batches])
-        t = np.concatenate([rb.t_ns for rb in batches])
-        prior = np.concatenate([rb.prior for rb in batches])
-        p = np.concatenate([rb.tag_kf @ poses[rb.ka][:3, :3].T + poses[rb.ka][:3, 3]
-                            for rb in batches])
-        h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
-        d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
-        e = d + mix.mu_nlos
+        return batches, poses
+
+    def _smoothed_excess(self, sm: OnlineSmoother, b: GraphBuilder, anchor: np.ndarray,
+                         seg: np.ndarray, default: np.ndarray) -> np.ndarray:
+        """Per range, the smoothed NLOS state of its (anchor, segment) where the smoother
+        holds one, else `default` (m)."""
         # the (anchor, segment) pairs, sorted by anchor then segment (segments >= 0: the
         # builder drops ranges before its first keyframe), as one int64 code each
         code, inv = np.unique(anchor.astype(np.int64) * _PAIR + seg, return_inverse=True)
@@ -400,34 +427,38 @@ class GraphEstimator(EstimatorBase):
                 except (RuntimeError, IndexError):
                     pass
         e_r = e_pair[inv.ravel()]
-        e = np.where(np.isnan(e_r), e, e_r)
-        r_los = z - h - d
-        r_nlos = z - h - e
-        g_cur = np.concatenate([rb.g for rb in batches])
-        if SEARCH:
-            u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
-            hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
-            self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
-            better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
-                      and bool(np.any(hyp.los != hyp.current)))
-            key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
-            self._hyp_count = self._hyp_count + 1 if better and key == self._hyp_key else 1
-            self._hyp_key = key
-            if better and self._hyp_count >= SEARCH_PERSIST:
-                # classify against the better hypothesis' track and NLOS excesses
-                self._n_switches += 1
-                r_los = r_los - u @ hyp.delta
-                exc = np.full(len(b.range_bias), mix.mu_nlos)
-                exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
-                r_nlos = r_los - exc[anchor]
-        ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
-        ll_n = ll_n + np.concatenate([rb.evidence for rb in batches])  # the classifier's
-        g = np.empty(len(z))
-        sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
-        jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
-        for sel in sels:
-            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
-                                float(prior[sel[0]]))
+        return np.where(np.isnan(e_r), default, e_r)
+
+    def _search_switch(
+        self, b: GraphBuilder, mix: NlosModel, anchor: np.ndarray, p: np.ndarray,
+        h: np.ndarray, r_los: np.ndarray, r_nlos: np.ndarray, g_cur: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """`uwb.los_subset_search` over the window (tag positions `p`, predicted ranges
+        `h`): the LOS and NLOS residuals against the better hypothesis' shifted track and
+        NLOS excesses once it has won SEARCH_PERSIST reviews in a row, else as given."""
+        u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
+        hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+        self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
+        better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
+                  and bool(np.any(hyp.los != hyp.current)))
+        key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
+        self._hyp_count = self._hyp_count + 1 if better and key == self._hyp_key else 1
+        self._hyp_key = key
+        if not (better and self._hyp_count >= SEARCH_PERSIST):
+            return r_los, r_nlos
+        assert hyp is not None
+        self._n_switches += 1
+        r_los = r_los - u @ hyp.delta
+        exc = np.full(len(b.range_bias), mix.mu_nlos)
+        exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
+        return r_los, r_los - exc[anchor]
+
+    def _replace_moved(self, b: GraphBuilder, batches: list[ReviewBatch], now: int,
+                       g: np.ndarray, g_cur: np.ndarray, e: np.ndarray,
+                       r_los: np.ndarray) -> None:
+        """After `_review`'s E-step (responsibilities `g`, were `g_cur`): the ranges whose
+        responsibility moved by more than REVIEW_CHANGE get new factors in the next update;
+        the batches old enough feed the smoothed LOS sigma once."""
         off = 0
         stat_age = now - round(SMOOTHED_STAT_AGE_S * NS_PER_S)
         # which batches have a range to replace, in one pass (most have none)
