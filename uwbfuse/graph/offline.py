@@ -491,6 +491,7 @@ MAX_ROBUST_SIGMA = 1.0  # m: a LOS range sigma beyond this is no UWB radio's
 
 
 def _bias_values(values: gtsam.Values, n_anchor: int) -> np.ndarray:
+    """Each anchor's LOS range offset D(a) in `values` (m); zeros when not estimated."""
     if not values.exists(D(0)):
         return np.zeros(n_anchor)
     return np.array([values.atDouble(D(a)) for a in range(n_anchor)])
@@ -738,26 +739,21 @@ def _solve_em(
     states = _NlosStates(a_r, seg_r, mix) if g_cfg.nlos else None
     st_idx = states.index(a_r, seg_r) if states is not None else None
 
-    def bias_values(vals: gtsam.Values) -> np.ndarray:
-        if not with_bias:
-            return np.zeros(n_anchor)
-        return np.array([vals.atDouble(D(a)) for a in range(n_anchor)])
-
     def residuals(vals: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
         """Predicted ranges and LOS residuals (m) at `vals`."""
         h = predicted_ranges(vals, rec, anchors, n_kf)
-        return h, rec["z"] - h - bias_values(vals)[a_r]
+        return h, rec["z"] - h - _bias_values(vals, n_anchor)[a_r]
 
     h, r_los = residuals(values)
     g = rec["g_online"].copy() if g_cfg.nlos else np.zeros(len(h))
     if states is not None and st_idx is not None:
         states.values = _initial_state_values(states, st_idx, g, r_los,
-                                              bias_values(values), mix.mu_nlos)
+                                              _bias_values(values, n_anchor), mix.mu_nlos)
     # EM runs with the LOS biases D(a) frozen at their prior mean (0): left free, a mostly
     # blocked anchor trades its NLOS excess against D(a) and EM settles in a biased basin.
     # One final LM round with the last responsibilities then calibrates D(a) (and C).
     freeze = with_bias and g_cfg.nlos
-    d0 = np.zeros(n_anchor) if freeze else bias_values(values)
+    d0 = np.zeros(n_anchor) if freeze else _bias_values(values, n_anchor)
     if freeze:
         for a in range(n_anchor):
             values.update(D(a), 0.0)
@@ -815,7 +811,7 @@ def _solve_em(
             refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
                         common_scale)
             rec["z"] = z_raw / (1.0 + scale[a_r])
-            r_los = rec["z"] - h - bias_values(values)[a_r]
+            r_los = rec["z"] - h - _bias_values(values, n_anchor)[a_r]
         if states is not None:
             states.values = np.array([values.atDouble(k) for k in states.keys])
     for _ in range(2 if with_scale else 0):  # scale and geometry settle together
