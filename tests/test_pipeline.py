@@ -120,6 +120,32 @@ def test_fallback_after_provisional_answers(
     assert all(answered[first_fallback_epoch:])
 
 
+def test_fallback_fixes_are_averaged_while_the_wheels_stand_still() -> None:
+    """test PreStart: while the wheels read still, the fallback answers with the mean of
+    its fixes since the standstill began (closer to the point than the fixes are), and
+    with its own fix again from the first moving wheel sample on"""
+    from uwbfuse.prestart import PreStart
+
+    rng = np.random.default_rng(0)
+    fixes = {k: (1.0 + 0.05 * rng.standard_normal(), 2.0) for k in range(100)}
+    wf = PreStart(_Scripted({}), _Scripted(fixes))
+    got = []
+    for k in range(100):
+        t = k * 100_000_000
+        moving = k >= 60
+        wf.add_wheel(np.array([t - 50_000_000, t]), np.full(2, 0.3 if moving else 0.0),
+                     np.zeros(2))
+        wf.step(t)
+        est = wf.estimate()
+        assert est is not None
+        got.append(float(est.position[0]))
+    raw = np.array([fixes[k][0] for k in range(100)])
+    assert got[:60] == pytest.approx(np.cumsum(raw[:60]) / np.arange(1, 61))
+    assert got[60:] == pytest.approx(raw[60:].tolist())
+    assert np.sqrt(np.mean((np.array(got[20:60]) - 1.0) ** 2)) < 0.5 * np.sqrt(
+        np.mean((raw[20:60] - 1.0) ** 2))
+
+
 def test_provisional_pose_is_held_while_the_fallback_has_no_fix() -> None:
     """test PreStart: a fallback without fixes (Plaza1) leaves the last provisional
     pose held until the primary starts, so no epoch after the first motion lacks a pose"""

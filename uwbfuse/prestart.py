@@ -8,6 +8,10 @@ every epoch from the first motion on. Before the start, three sources can answer
 - a UWB-only fallback (per-epoch NLOS-weighted WLS) for methods that use ranges;
 - the last provisional pose, held.
 
+While the wheels say the vehicle stands still, the fallback's answer is the mean of its
+fixes since the standstill began: each fix is of the same point, so the mean's squared
+error is at most the fixes' mean squared error (the per-epoch fixes' noise averages out).
+
 `PreStart` wraps a method and decides among them epoch by epoch (the causal output), and
 `PreStart.complete` gives a smoothed method's final trajectory the epochs before its first
 pose: carried back along the method's own relative motion where it has one
@@ -25,6 +29,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.estimator import Estimator, EstimatorBase, PoseEstimate, RangeClasses
 from uwbfuse.methods import Method, make_estimator
+from uwbfuse.positioning.start import STATIC_MAX_SPEED, STATIC_MAX_YAW_RATE
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
 DROP_AFTER_EPOCHS = 20
@@ -38,6 +43,9 @@ scale of 7 % at 15 m is 1 m)."""
 PROVISIONAL_GRACE_S = 5.0
 """Longest hold, s, of the last provisional position in place of a discredited fallback:
 the time a vehicle at walking speed needs for the couple of metres the start solve needs."""
+STILL_WHEEL_GAP_NS = 200_000_000
+"""The wheels count as saying "still" at an epoch only when their last sample is this
+recent (ns; 10 samples at the usual 50 Hz): older, the vehicle may have moved since."""
 
 
 class PreStart(EstimatorBase):
@@ -67,6 +75,11 @@ class PreStart(EstimatorBase):
         self._silent_since: int | None = None
         self._last_provisional: PoseEstimate | None = None
         self._provisional = True
+        self._still_since: int | None = None  # ns: wheels within the STATIC_MAX_* since
+        self._wheel_last: int | None = None   # ns: last wheel sample
+        self._still_sum = np.zeros(3)         # fallback fixes since _still_since ...
+        self._still_n = 0                     # ... and their number
+        self._still_from: int | None = None   # the _still_since they belong to
 
     @classmethod
     def around(cls, primary: Estimator, method: Method, config: Config,
@@ -88,6 +101,36 @@ class PreStart(EstimatorBase):
         self.primary.add_wheel(t_ns, v, omega)
         if self.fallback is not None:
             self.fallback.add_wheel(t_ns, v, omega)
+            self._track_standstill(np.asarray(t_ns, np.int64), np.asarray(v, np.float64),
+                                   np.asarray(omega, np.float64))
+
+    def _track_standstill(self, t: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
+        """Keep `_still_since`: the stamp since which every wheel sample is still (a sample
+        averages the interval ending at its stamp, so the last moving one ends the motion)."""
+        if not len(t):
+            return
+        still = (np.abs(v) < STATIC_MAX_SPEED) & (np.abs(omega) < STATIC_MAX_YAW_RATE)
+        moving = np.flatnonzero(~still)
+        if len(moving):
+            self._still_since = int(t[moving[-1]]) if moving[-1] < len(t) - 1 else None
+        elif self._still_since is None:
+            self._still_since = int(t[0]) if self._wheel_last is None else self._wheel_last
+        self._wheel_last = int(t[-1])
+
+    def _standstill_mean(self, fb: PoseEstimate) -> PoseEstimate:
+        """`fb`, or the mean of the fallback's fixes since the standstill began while the
+        wheels say the vehicle stands still (module docstring)."""
+        since, last = self._still_since, self._wheel_last
+        if since is None or last is None or fb.t_ns - last > STILL_WHEEL_GAP_NS or (
+                fb.t_ns <= since):
+            self._still_from = None
+            return fb
+        if self._still_from != since:
+            self._still_from, self._still_sum, self._still_n = since, np.zeros(3), 0
+        self._still_sum = self._still_sum + fb.position
+        self._still_n += 1
+        return PoseEstimate(fb.t_ns, self._still_sum / self._still_n, fb.quat_xyzw,
+                            fb.covariance)
 
     def add_ranges(self, t_ns: np.ndarray, anchor: np.ndarray, rng: np.ndarray) -> None:
         self.primary.add_ranges(t_ns, anchor, rng)
@@ -141,7 +184,7 @@ class PreStart(EstimatorBase):
             self._current = PoseEstimate(t_ns, last.position, last.quat_xyzw, last.covariance)
             self.held_epochs += 1
             return
-        self._current = fb
+        self._current = None if fb is None else self._standstill_mean(fb)
         if self._current is not None:
             self.fallback_epochs += 1
 

@@ -49,6 +49,7 @@ from uwbfuse.filters.adaptive_noise import (
     InnovationVariance,
     RangeNoise,
     gaussian_log_density,
+    sequential_ranges,
 )
 from uwbfuse.filters.base import InitialiserLike, build_filter
 from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
@@ -61,6 +62,7 @@ from uwbfuse.filters.models import (
     TH,
     V_,
     augment,
+    joseph_update,
     mechanise,
     so3_exp,
     so3_log,
@@ -99,7 +101,7 @@ class MerweWeights:
 
 def _unscented_update(
     wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
-    noise: RangeNoise | None, anchor: np.ndarray,
+    noise: RangeNoise, anchor: np.ndarray,
     row_noise: list[tuple[InnovationVariance, int]] | None = None,
     evidence: F64 | None = None,
 ) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray, float]:
@@ -107,47 +109,58 @@ def _unscented_update(
 
     ex (2n+1, n): sigma-point state deviations from the central point; zs (2n+1, m):
     predicted measurements; z (m,) measured; r (m,) variances; p_prior (n,n) the predicted
-    covariance (already with Q). The first len(anchor) rows are ranges of those anchors:
-    each is weighed by `noise` (`RangeNoise.weigh`: NLOS mixture posterior as the
-    measurement, chi-square gate) on its innovation and predicted variance, and replaces its
-    r; the rows after them (wheel speeds, planar constraint) feed `row_noise` in order:
-    (estimator, number of rows) per block. Returns the correction of the central point (n,),
-    the posterior covariance P - K Pzz K^T, the innovation y, the accepted-row mask, the
-    normalised innovations squared of the ranges, which of those measured short (negative
-    innovation) and the log density (nats) of the rows after the ranges. `evidence`
-    (len(anchor),): the NLOS classifier's log-odds per range, nats.
+    covariance (already with Q). The first len(anchor) rows are ranges of those anchors,
+    the rows after them (wheel speeds, planar constraint) feed `row_noise` in order:
+    (estimator, number of rows) per block.
+
+    The sigma points give the joint Gaussian of the state error and the predicted
+    measurements (cross covariance Pxz, Pzz); the update conditions it as the EKF does
+    (`ErrorStateEkf._window`): first on the rows after the ranges (one stacked Joseph
+    update), then on the ranges one by one (`adaptive_noise.sequential_ranges`: each
+    weighed by `noise` on the innovation and prediction variance left after the
+    measurements before it, NLOS mixture posterior as the measurement, chi-square gate),
+    so that the ranges of one window that share the state's error are not weighed, gated
+    and scored (the noise bank's likelihood) as if each were the only one. Returns the
+    correction of the central point (n,), the posterior covariance, the innovation y (m,)
+    before the update, the accepted-row mask, the normalised innovations squared of the
+    ranges, which of those measured short (negative innovation) and the log density
+    (nats) of the rows after the ranges. `evidence` (len(anchor),): the NLOS classifier's
+    log-odds per range, nats.
     """
     nr = len(anchor)
+    n, m = ex.shape[1], zs.shape[1]
     ex_mean = wts.wm @ ex
     dz0 = zs - zs[0]
     z_mean = zs[0] + wts.wm @ dz0
     dx = ex - ex_mean
     dz = zs - z_mean
-    pzz = (dz.T * wts.wc) @ dz
+    # joint covariance of (state error, predicted measurements): the measurements are
+    # states n.. of an augmented linear system, each observed by a unit row
+    c = np.empty((n + m, n + m))
+    c[:n, :n] = p_prior
+    pxz = (dx.T * wts.wc) @ dz
+    c[:n, n:] = pxz
+    c[n:, :n] = pxz.T
+    c[n:, n:] = (dz.T * wts.wc) @ dz
     y = z - z_mean
-    keep = np.ones(len(z), dtype=bool)
+    keep = np.ones(m, dtype=bool)
     short = y[:nr] < 0.0
     nis = np.zeros(nr)
-    r = r.copy()
-    if nr and noise is not None:
-        s_pred = np.diag(pzz)[:nr].copy()
-        y_raw = y[:nr].copy()
-        y[:nr], r[:nr], keep[:nr], nis = noise.weigh(anchor, y_raw, s_pred, evidence)
-        noise.accept(anchor, y_raw, s_pred, keep[:nr], z[:nr])
-    start = nr
-    s_all = np.diag(pzz)
-    for est, n_rows in row_noise or ():
-        est.update(y[start : start + n_rows], s_all[start : start + n_rows])
-        start += n_rows
-    pzz[np.diag_indices_from(pzz)] += r
-    row_ll = gaussian_log_density(y[nr:], pzz[nr:, nr:]) if len(y) > nr else 0.0
-    if not np.any(keep):
-        return ex_mean, p_prior, y, keep, nis, short, row_ll
-    pzz = pzz[np.ix_(keep, keep)]
-    pxz = (dx.T * wts.wc) @ dz[:, keep]
-    k = np.linalg.solve(pzz, pxz.T).T
-    p_new = p_prior - k @ pzz @ k.T
-    return ex_mean + k @ y[keep], 0.5 * (p_new + p_new.T), y[keep], keep, nis, short, row_ll
+    unit = np.eye(n + m)[n:]
+    corr = np.zeros(n + m)
+    row_ll = 0.0
+    if m > nr:
+        s_all = np.diag(c)[n:]
+        start = nr
+        for est, n_rows in row_noise or ():
+            est.update(y[start : start + n_rows], s_all[start : start + n_rows])
+            start += n_rows
+        corr, c, s_rows, _ = joseph_update(c, unit[nr:], r[nr:], y[nr:])
+        row_ll = gaussian_log_density(y[nr:], s_rows)
+    if nr:
+        c, corr, keep[:nr], nis = sequential_ranges(
+            noise, c, corr, unit[:nr], y[:nr], anchor, z[:nr], evidence)
+    return ex_mean + corr[:n], c[:n, :n], y, keep, nis, short, row_ll
 
 
 class ErrorStateUkf(ErrorStateEkf):

@@ -225,7 +225,7 @@ class _HeadingResiduals:
     anc_col: np.ndarray  # (N,) column of each range's anchor among the biases
     rr: F64  # (N,) ranges, m
     sig: float  # range sigma, m
-    lev0: F64  # (3,) lever arm at the window start, yaw-zero frame, m
+    lev0: F64  # (3,) tag where `prior` holds it, from the window-start base, yaw-zero frame, m
     prior: tuple[F64, float] | None  # standstill fix (tag position m, std m)
     sens_sigma: F64  # (P,) prior std of the sensitivity parameters
     b_sigma: float  # prior std of the range biases, m
@@ -780,6 +780,17 @@ class Initialiser:
         prior = None
         if motion_start is not None and v0_known:
             prior = self._static_fix(rng, t_first, motion_start)
+        elif self.has_wheel:
+            # a later standstill that ended inside the window: its fix holds the tag where
+            # the track has it at the standstill's end (room-static: a 20 s stop ends 1 s
+            # into the window; without it the solve's position was 0.25-0.34 m off)
+            last = _last_standstill(wheel, w_start, t_ns, cfg.standstill_window)
+            if last is not None:
+                prior = self._static_fix(rng, *last)
+                if prior is not None:
+                    at = self._track(imu, wheel, r_level, gyro_bias, accel_bias, ts0,
+                                     np.array([ts0, last[1] / NS_PER_S]), v0_known, still_ok)
+                    lev0 = at.d[1] + at.rot[1] @ self.lever
         solve_v = trk.free_velocity
         # Per-anchor range biases (slow NLOS, antenna delay) over the window.
         anc_ids, anc_col = np.unique(ar, return_inverse=True)
@@ -1074,6 +1085,34 @@ def accept_start(
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
         return StartVerdict(state, consistent, False, reason)
     return StartVerdict(state, consistent, True, "initialised")
+
+
+def _last_standstill(wheel: tuple, w_start: int, t_ns: int,
+                     min_s: float) -> tuple[int, int] | None:
+    """[start, end) ns of the last standstill of the wheels (every sample within the
+    `start.STATIC_MAX_*` speeds, at least `min_s` s long) that ended after w_start and
+    before t_ns, or None."""
+    from uwbfuse.positioning.start import STATIC_MAX_SPEED, STATIC_MAX_YAW_RATE
+
+    t, v, om = wheel
+    sel = t <= t_ns
+    t, v, om = t[sel], v[sel], om[sel]
+    if len(t) < 3:
+        return None
+    still = (np.abs(v) < STATIC_MAX_SPEED) & (np.abs(om) < STATIC_MAX_YAW_RATE)
+    # runs of still samples j..k (k not the newest: the standstill has ended); a sample
+    # averages the interval that ends at its stamp, so run j..k is still over (t[j-1], t[k]]
+    edge = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    first, last = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1) - 1
+    for j, k in zip(first[::-1].tolist(), last[::-1].tolist(), strict=True):
+        if k == len(t) - 1:
+            continue
+        if t[k] <= w_start:
+            return None
+        s0 = int(t[j - 1]) if j > 0 else int(t[0])
+        if t[k] - s0 >= min_s * NS_PER_S:
+            return s0, int(t[k])
+    return None
 
 
 def _wrap(a: float) -> float:
