@@ -351,3 +351,17 @@ def test_bad_model_fails_before_the_log_is_read(tmp_path: Path, command: str,
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "[nlos] classifier" in err[0] and "absent.mcap" not in err[0]
+
+
+def test_power_change_and_first_path_excess() -> None:
+    """test that rx_minus_fp_jump is the change of RX - FP since the anchor's previous range
+    and that the first path above free space is lower under NLOS."""
+    s = simulate_with_truth("warehouse-nlos", 20.0, seed=4, signal_quality=True)
+    x, names = log_features(s.log, Config())
+    gap = x[:, names.index("rx_minus_fp_db")]
+    jump = x[:, names.index("rx_minus_fp_jump")]
+    a = s.log.ranges.anchor
+    i = np.flatnonzero(a == a[0])[:2]
+    assert jump[i[1]] == pytest.approx(gap[i[1]] - gap[i[0]])
+    fpx = x[:, names.index("fp_excess_db")]
+    assert np.median(fpx[s.nlos]) < np.median(fpx[~s.nlos]) - 3.0

@@ -70,8 +70,9 @@ FORMAT_VERSION = 1
 TRUSTED_TYPES = ("sklearn.tree._tree.Tree",)
 
 RESIDUAL_FEATURES = ("residual", "residual_jump", "range_jump", "range_rate", "distance",
-                     "elevation", "fix_rms", "residual_median")
-POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db", "rx_minus_fp_median")
+                     "elevation", "fix_rms", "residual_median", "residual_median_long")
+POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db", "rx_minus_fp_median", "rx_minus_fp_jump",
+                  "fp_excess_db")
 KNOWN_FEATURES = RESIDUAL_FEATURES + POWER_FEATURES
 
 # m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
@@ -91,6 +92,10 @@ EVIDENCE_WEIGHT = 0.5
 # while an obstacle is in the way, seconds at walking or AGV speed (5 ranges: 0.5 s at 40 Hz
 # over four anchors)
 HISTORY_RANGES = 5
+# ranges of one anchor in the long running median: the slow part of an NLOS excess (a
+# shelf's delay) lasts seconds, so about 2 s of one anchor's ranges (20 at 40 Hz over four
+# anchors) average the LOS noise out of it
+HISTORY_LONG = 20
 MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s)
 
 
@@ -215,13 +220,18 @@ def range_features(
     cols = {"residual": res, "residual_jump": res_jump, "range_jump": jump,
             "range_rate": rate, "distance": z, "elevation": elev,
             "fix_rms": np.where(has, rms[k], np.nan),
-            "residual_median": _running_median(res, t, a, HISTORY_RANGES)}
+            "residual_median": _running_median(res, t, a, HISTORY_RANGES),
+            "residual_median_long": _running_median(res, t, a, HISTORY_LONG)}
     if with_power:
         assert ranges.rssi_dbm is not None and ranges.first_path_dbm is not None
         gap = ranges.rssi_dbm - ranges.first_path_dbm
         cols["rssi_dbm"] = ranges.rssi_dbm
         cols["rx_minus_fp_db"] = gap
         cols["rx_minus_fp_median"] = _running_median(gap, t, a, HISTORY_RANGES)
+        cols["rx_minus_fp_jump"] = np.where(recent, gap - gap[np.maximum(prev, 0)], np.nan)
+        # first-path power above free space (Friis, exponent 2) at the measured range: the
+        # direct path of a LOS range follows it, an obstacle on that path takes dB off it
+        cols["fp_excess_db"] = ranges.first_path_dbm + 20.0 * np.log10(np.maximum(z, 0.1))
     for i, name in enumerate(names):
         x[:, i] = cols[name]
     return x, names
