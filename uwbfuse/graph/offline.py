@@ -1014,7 +1014,7 @@ WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
 
 def wheel_noise_log_evidence(
     graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, wheel: WheelRecords,
-    factors: tuple[float, float], max_iterations: int,
+    factors: tuple[float, float], max_iterations: int, n_kf: int, scale_fit: bool,
 ) -> tuple[float, gtsam.Values]:
     """Laplace log-evidence (nats, up to a constant) of `graph` with its wheel factors
     (`wheel`'s, same indices, replaced in place) at their covariances scaled by
@@ -1026,17 +1026,25 @@ def wheel_noise_log_evidence(
     1/2 log det H). Unlike the error alone it does not favour the loosest noise, and unlike
     an in-sample chi-square it is not biased where the wheel factors alone hold the track
     (a range outage: there the factors' residuals carry no information about their noise).
-    Huber kernels enter through their loss and their weights at x*."""
+    Huber kernels enter through their loss and their weights at x*. `scale_fit`: the
+    odometry scale (`_WheelScale`) is refitted at this noise before the evidence (a tight
+    noise otherwise pays for the encoders' scale error, which batch calibrates); the
+    normalisers stay those of the raw wheel deltas."""
     fv, fw = factors
     c = np.array([fv, fv, fw])
+    ws = _WheelScale(wheel)
+    ws.cov = ws.cov * np.outer(c, c)
     half_logdet_cov = 0.0
-    for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
-        cs = cov * np.outer(c, c)
-        cov6 = planar_covariance6(cs, wheel.out_of_plane)
+    for k, d, cov, idx in zip(wheel.k, wheel.delta, ws.cov, wheel.index, strict=True):
+        cov6 = planar_covariance6(cov, wheel.out_of_plane)
         half_logdet_cov += 0.5 * float(np.linalg.slogdet(cov6)[1])
-        graph.replace(idx, between_factor(X(k), X(k + 1), d, cs, wheel.out_of_plane,
-                                          WHEEL_HUBER_K))
+        graph.replace(idx, between_factor(X(k), X(k + 1), d, cov, wheel.out_of_plane))
     values = _run_lm(graph, initial, max_iterations).values()
+    if scale_fit:  # the odometry scale at this noise (as batch fits it), then LM again
+        ws.refit(values, n_kf)
+        ws.applied = np.zeros(2)  # rebuilt even at scale 1 (the factors are this noise's)
+        ws.apply([graph])
+        values = _run_lm(graph, values, max_iterations).values()
     half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
     return -graph.error(values) - half_logdet_cov - half_logdet_h, values
 
@@ -1044,7 +1052,7 @@ def wheel_noise_log_evidence(
 def fit_wheel_noise(
     cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
     rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
-    wheel: WheelRecords,
+    wheel: WheelRecords, n_kf: int,
 ) -> np.ndarray:
     """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
     evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
@@ -1055,13 +1063,15 @@ def fit_wheel_noise(
         return np.ones(2)
     graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
     n_it = cfg.graph.lm_max_iterations
+    scale_fit = False
     seen: dict[tuple[float, float], float] = {}
     start = {"values": initial}
 
     def score(u: tuple[float, float]) -> float:
         if u not in seen:
             ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
-                                                (2.0 ** u[0], 2.0 ** u[1]), n_it)
+                                                (2.0 ** u[0], 2.0 ** u[1]), n_it, n_kf,
+                                                scale_fit)
             ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
             seen[u] = ev
             log.debug("wheel noise %s: %.2f", u, ev)
