@@ -1061,17 +1061,36 @@ def fit_wheel_noise(
     (WHEEL_NOISE_TEST_NATS)."""
     if not wheel.k:
         return np.ones(2)
-    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
+    held = heldout_mask(rec["t_ns"], int(rec["t_ns"].min()) if len(rec["t_ns"]) else 0)
+    if not np.any(held):
+        return np.ones(2)
+    test = _subset(rec, held)
+    graph = _with_robust_ranges(cfg, base_graph, _subset(rec, ~held), scale, sigma,
+                                with_bias)
     n_it = cfg.graph.lm_max_iterations
-    scale_fit = False
     seen: dict[tuple[float, float], float] = {}
     start = {"values": initial}
+    a_t = test["anchor"].astype(np.int64)
+    z_t = test["z"] / (1.0 + scale[a_t]) if scale is not None else test["z"]
+
+    def heldout(u: tuple[float, float]) -> tuple[float, gtsam.Values]:
+        c = np.array([2.0 ** u[0], 2.0 ** u[0], 2.0 ** u[1]])
+        for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
+            graph.replace(idx, between_factor(X(k), X(k + 1), d, cov * np.outer(c, c),
+                                              wheel.out_of_plane, WHEEL_HUBER_K))
+        vals = _run_lm(graph, start["values"], n_it).values()
+        rot, trans = keyframe_arrays(vals, n_kf)
+        kk = test["k"]
+        p = np.einsum("nij,nj->ni", rot[kk], test["tag_in_kf"]) + trans[kk]
+        anc = np.array([vals.atPoint3(L(a)) for a in range(int(a_t.max()) + 1)])
+        bias = (np.array([vals.atDouble(D(a)) for a in range(len(anc))]) if with_bias
+                else np.zeros(len(anc)))
+        r = z_t - np.linalg.norm(p - anc[a_t], axis=1) - bias[a_t]
+        return float(np.sum(huber_log_density(r, sigma, cfg.uwb.kernel_threshold))), vals
 
     def score(u: tuple[float, float]) -> float:
         if u not in seen:
-            ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
-                                                (2.0 ** u[0], 2.0 ** u[1]), n_it, n_kf,
-                                                scale_fit)
+            ev, vals = heldout(u)
             ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
             seen[u] = ev
             log.debug("wheel noise %s: %.2f", u, ev)
