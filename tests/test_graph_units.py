@@ -85,6 +85,29 @@ def test_wheel_covariance_matches_monte_carlo():
     np.testing.assert_allclose(cov[0, 1], mc[0, 1], atol=0.05 * np.sqrt(mc[0, 0] * mc[1, 1]))
 
 
+def test_wheel_between_and_covariance_over_arrays_equal_each_pair():
+    """Test that `between` and `covariance` over arrays of pairs (batch's whole track at
+    once) give exactly each pair's own: intervals of no, one and many pieces, starting on a
+    sample, empty (t_b <= t_a) and past the track's ends."""
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.integers(1, 40_000_000, 300)) + NS
+    track = WheelTrack()
+    v, w = rng.normal(1.0, 0.5, 300), rng.normal(0.0, 0.5, 300)
+    w[::7] = 0.0
+    track.add(t[:100], v[:100], w[:100])
+    track.add(t[100:], v[100:], w[100:])
+    ta = rng.integers(int(t[0]) - NS, int(t[-1]) + NS, 400)
+    ta[:40] = t[rng.integers(0, 300, 40)]
+    tb = ta + rng.integers(-50_000_000, 400_000_000, 400)
+    tb[40:50] = ta[40:50]
+    cfg = WheelConfig()
+    cov = track.covariance(ta, tb, cfg)
+    delta = track.between(ta, tb)
+    for j in range(len(ta)):
+        assert np.array_equal(cov[j], track.covariance(int(ta[j]), int(tb[j]), cfg))
+        assert np.array_equal(delta[j], track.between(int(ta[j]), int(tb[j])))
+
+
 @pytest.mark.parametrize("kernel", [k for k in RobustKernel if k is not RobustKernel.NONE])
 def test_robust_weight_matches_gtsam(kernel):
     """Test that the vectorised kernel weights equal GTSAM's m-estimator weights."""

@@ -480,14 +480,18 @@ class GraphBuilder:
     ) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b in the base frame at t_a (metres)."""
         if self.has_wheel and len(self.wheel):  # vectorised planar case
-            dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
-            rel = se2_between(dd[0][None, :], dd[1:])
-            c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
-            tx, ty, tz = self.tag
-            return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
-                                    np.full(len(rel), tz)])
+            return self._wheel_tag(np.array([t_a], np.int64), t_b)
         return np.array([d.transformFrom(self.tag) for d in self.delta(t_a, t_b, pose_a, vel_a)]
                         ).reshape(-1, 3)
+
+    def _wheel_tag(self, t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
+        """Tag antenna position (N,3) at each time t_b (N,) in the base frame at t_a ((N,) or
+        (1,) for all) by the wheel track (metres)."""
+        rel = se2_between(self.wheel.at(t_a), self.wheel.at(np.asarray(t_b, np.int64)))
+        c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
+        tx, ty, tz = self.tag
+        return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
+                                np.full(len(rel), tz)])
 
     def use_priors(self, priors: RangePriors | None) -> None:
         """The learned NLOS classifier's per-range priors (None: the mixture's own)."""
@@ -717,17 +721,23 @@ class GraphBuilder:
         if not (self.record and self.has_wheel and len(self.wheel)) or self.full_graph is None:
             return
         wr = self.wheel_records
-        for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
-            t_a, t_b = self.time_of(ka) - offset_ns, self.time_of(ka + 1) - offset_ns
-            wr.delta[j] = self.wheel.between(t_a, t_b)
-            wr.cov[j] = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
-            self.full_graph.replace(idx, between_factor(
-                X(ka), X(ka + 1), wr.delta[j], wr.cov[j], wr.out_of_plane, WHEEL_HUBER_K))
+        if wr.k:  # the whole track at once; per factor only its GTSAM construction
+            t_a = np.array([self.time_of(ka) - offset_ns for ka in wr.k], np.int64)
+            t_b = t_a + self.period_ns
+            delta = self.wheel.between(t_a, t_b)
+            cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
+            for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
+                wr.delta[j], wr.cov[j] = delta[j], cov[j]
+                self.full_graph.replace(idx, between_factor(
+                    X(ka), X(ka + 1), wr.delta[j], wr.cov[j], wr.out_of_plane, WHEEL_HUBER_K))
         rec = self.records
-        for j, (ks, t) in enumerate(zip(rec.k, rec.t_ns, strict=True)):
-            if len(ks):
-                rec.tag_in_kf[j] = self.tag_in_keyframe(
-                    self.time_of(int(ks[0])) - offset_ns, t - offset_ns, self.pose, self.vel)
+        full = [j for j, ks in enumerate(rec.k) if len(ks)]
+        if full:  # every range's tag from its keyframe at once
+            n = [len(rec.k[j]) for j in full]
+            t_a = np.repeat([self.time_of(int(rec.k[j][0])) - offset_ns for j in full], n)
+            tags = self._wheel_tag(t_a, np.concatenate([rec.t_ns[j] for j in full]) - offset_ns)
+            for j, tag in zip(full, np.split(tags, np.cumsum(n)[:-1]), strict=True):
+                rec.tag_in_kf[j] = tag
 
     def _add_ranges(
         self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray

@@ -709,9 +709,10 @@ class GraphEstimator(EstimatorBase):
         period = float(np.median(np.diff(self.wheel.t)))
         steps = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
         errs = np.empty(len(steps))
+        graph, initial, _ = self.batch_inputs()  # the offset changes only factors and tags
         for i, f in enumerate(steps.tolist()):
             b.complete_wheel_records(round(f * period))
-            graph, initial, rec = self.batch_inputs()
+            rec = b.records.arrays()
             errs[i] = offline.motion_fit_error(self.cfg, graph, initial, rec,
                                                b.scale if b.with_scale else None,
                                                b.robust_sigma(), b.with_bias)

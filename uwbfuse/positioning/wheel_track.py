@@ -10,6 +10,7 @@ the relative motion between any two times is one SE(2) composition.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -195,48 +196,81 @@ class WheelTrack:
         out = se2_compose(self._pose[base_i], np.stack([dx, dy, dth], axis=-1))
         return out if np.ndim(t_ns) else out[0]
 
-    def between(self, t_a: int, t_b: int) -> np.ndarray:
-        """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a."""
-        p = self.at(np.array([t_a, t_b], dtype=np.int64))
-        return se2_between(p[0], p[1])
+    def between(self, t_a: np.ndarray | int, t_b: np.ndarray | int) -> np.ndarray:
+        """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a
+        (scalars, or arrays of ns: (n, 3), one per pair)."""
+        return se2_between(self.at(t_a), self.at(t_b))
 
-    def covariance(self, t_a: int, t_b: int, cfg: WheelConfig) -> np.ndarray:
-        """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise."""
-        n = len(self.t)
-        cov = np.zeros((3, 3))
-        if n == 0 or t_b <= t_a:
-            return cov + np.diag([1e-6, 1e-6, 1e-6])
-        i0 = int(np.searchsorted(self.t, t_a, side="left"))
-        i1 = int(np.searchsorted(self.t, t_b, side="left"))
-        edges = np.concatenate([[t_a], self.t[i0:min(i1, n)], [t_b]])
-        edges = np.unique(np.clip(edges, t_a, t_b))
-        mid = (edges[:-1] + edges[1:]) // 2
-        idx = np.clip(np.searchsorted(self.t, mid, side="left"), 0, n - 1)
-        tau = np.diff(edges).astype(np.float64) / NS_PER_S
+    def covariance(self, t_a: np.ndarray | int, t_b: np.ndarray | int,
+                   cfg: WheelConfig) -> np.ndarray:
+        """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise
+        (scalars, or arrays of ns: (n, 3, 3), one per pair)."""
+        scalar = np.ndim(t_a) == 0 and np.ndim(t_b) == 0
+        ta = np.atleast_1d(np.asarray(t_a, np.int64))
+        tb = np.atleast_1d(np.asarray(t_b, np.int64))
+        out = np.zeros((len(ta), 3, 3))
+        still = tb <= ta if len(self.t) else np.ones(len(ta), bool)
+        out[still] = np.diag([1e-6, 1e-6, 1e-6])
+        go = np.flatnonzero(~still)
+        if len(go) == 0:
+            return out[0] if scalar else out
+        dx, dy, dth, tau = self._pieces(ta[go], tb[go])
+        q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
+        # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side; one
+        # pair in Python floats (one keyframe interval online: a few pieces, where numpy's
+        # per-call cost is ~10x the arithmetic)
+        if scalar:
+            st: tuple = (0.0,) * 7
+            for piece in zip(dx[0].tolist(), dy[0].tolist(), dth[0].tolist(), tau[0].tolist(),
+                             strict=True):
+                st = _propagate_piece(st, *piece, q, math.cos, math.sin)
+        else:
+            st = (np.zeros(len(go)),) * 7
+            for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
+                new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
+                                       np.cos, np.sin)
+                st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
+        p00, p01, p02, p11, p12, p22, _ = st
+        out[go] = np.moveaxis(np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]]),
+                              -1, 0)
+        return out[0] if scalar else out
+
+    def _pieces(self, t_a: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Local (dx, dy, dtheta) arcs and durations tau s (n, m) of the constant-velocity
+        pieces of each interval t_a < t_b (n,) ns, cut at the samples strictly inside it;
+        the intervals with fewer pieces end in padding pieces of tau 0."""
+        t = self.t
+        n = len(t)
+        i0 = np.searchsorted(t, t_a, side="right")  # the first sample after t_a
+        m = np.searchsorted(t, t_b, side="left") - i0  # samples strictly inside
+        j = np.arange(1, int(m.max()) + 2)
+        edges = np.empty((len(t_a), len(j) + 1), np.int64)
+        edges[:, 0] = t_a
+        edges[:, 1:] = np.where(j[None, :] <= m[:, None],
+                                t[np.minimum(i0[:, None] + j[None, :] - 1, n - 1)], t_b[:, None])
+        mid = (edges[:, :-1] + edges[:, 1:]) // 2
+        idx = np.clip(np.searchsorted(t, mid, side="left"), 0, n - 1)
+        tau = np.diff(edges, axis=1).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
-        q0, q1, q2 = cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2
-        # P <- F P F^T + G Q G^T per piece, F = [[1, 0, a], [0, 1, b], [0, 0, 1]] (a, b: the
-        # piece's translation in the frame at t_a, turned by 90 deg), G = rot(theta) (+) 1,
-        # Q = diag(q) tau^2; in scalars: a few pieces per keyframe, and 3x3 numpy products
-        # cost ~10x more per piece than the arithmetic
-        p00 = p01 = p02 = p11 = p12 = p22 = 0.0
-        th = 0.0
-        for dxj, dyj, dthj, tj in zip(dx.tolist(), dy.tolist(), dth.tolist(), tau.tolist(),
-                                      strict=True):
-            c, s = math.cos(th), math.sin(th)
-            a = -s * dxj - c * dyj
-            b = c * dxj - s * dyj
-            r00, r01, r02 = p00 + a * p02, p01 + a * p12, p02 + a * p22
-            n00 = r00 + a * r02
-            n01 = r01 + b * r02
-            n11 = (p11 + b * p12) + b * (p12 + b * p22)
-            t2 = tj * tj
-            g0, g1 = q0 * t2, q1 * t2
-            p00 = n00 + c * c * g0 + s * s * g1
-            p01 = n01 + c * s * (g0 - g1)
-            p11 = n11 + s * s * g0 + c * c * g1
-            p02, p12 = r02, p12 + b * p22
-            p22 = p22 + q2 * t2
-            th += dthj
-        cov = np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
-        return cov
+        return dx, dy, dth, tau
+
+
+def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,
+                     q: tuple[float, float, float], cos: Any, sin: Any) -> tuple:
+    """One piece of `WheelTrack.covariance`'s propagation, state (p00, p01, p02, p11, p12,
+    p22, theta) (floats or arrays): P <- F P F^T + G Q G^T, F = [[1, 0, a], [0, 1, b],
+    [0, 0, 1]] (a, b: the piece's translation (dx, dy) in the frame at t_a, turned by 90
+    deg), G = rot(theta) (+) 1, Q = diag(q) tau^2; theta += dth."""
+    p00, p01, p02, p11, p12, p22, th = st
+    q0, q1, q2 = q
+    c, s = cos(th), sin(th)
+    a = -s * dx - c * dy
+    b = c * dx - s * dy
+    r00, r01, r02 = p00 + a * p02, p01 + a * p12, p02 + a * p22
+    n00 = r00 + a * r02
+    n01 = r01 + b * r02
+    n11 = (p11 + b * p12) + b * (p12 + b * p22)
+    t2 = tau * tau
+    g0, g1 = q0 * t2, q1 * t2
+    return (n00 + c * c * g0 + s * s * g1, n01 + c * s * (g0 - g1), r02,
+            n11 + s * s * g0 + c * c * g1, p12 + b * p22, p22 + q2 * t2, th + dth)
