@@ -119,15 +119,12 @@ WHEEL_PROFILE_LM_ITERATIONS = 3
 
 
 class _WheelScale:
-    """Odometry scale factors (v, omega) fitted to the smoothed track after LM.
+    """Odometry scale factors (v, omega) fitted with the smoothed track after LM.
 
-    A refit is the weighted least-squares scale of the recorded keyframe-to-keyframe
-    wheel deltas (translation for v, yaw for omega) against the same motion at the current
-    estimate, Huber weights against slip, prior N(1, WHEEL_SCALE_SIGMA^2). Followed by an LM
-    round it is one step of block coordinate descent on the joint problem (track and
-    scale); further steps moved the simulated logs by under 0.5 mm. A GTSAM factor with
-    the scale as a variable would need a Python CustomFactor per keyframe (about 50x a
-    native factor's linearisation), so the scale stays outside the graph and the native
+    `profile` takes the scales of least graph error (the track re-solved at each, prior
+    N(1, WHEEL_SCALE_SIGMA^2)); followed by an LM round. A GTSAM factor with the scale as a
+    variable would need a Python CustomFactor per keyframe (about 50x a native factor's
+    linearisation), so the scale stays outside the graph and the native
     `BetweenFactorPose3`s are rebuilt (`graph.replace`) when it moves.
     """
 
@@ -140,30 +137,6 @@ class _WheelScale:
         self.out_of_plane = records.out_of_plane
         self.scale = np.ones(2)
         self.applied = np.ones(2)
-
-    def refit(self, values: gtsam.Values, n_kf: int) -> None:
-        """New (v, omega) scales from the keyframe poses in `values`."""
-        if len(self.k) == 0:
-            return
-        rot, trans = keyframe_arrays(values, n_kf)
-        k = self.k
-        ra = rot[k]
-        t_rel = np.einsum("nji,nj->ni", ra, trans[k + 1] - trans[k])[:, :2]
-        r_rel = np.einsum("nji,njk->nik", ra, rot[k + 1])
-        th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
-        d = self.delta
-        var_t = 0.5 * (self.cov[:, 0, 0] + self.cov[:, 1, 1]) + 1e-6
-        var_th = self.cov[:, 2, 2] + 1e-6
-        prior = WHEEL_SCALE_SIGMA**-2
-        out = self.scale.copy()
-        for j, (est, raw, var) in enumerate((
-                (t_rel, d[:, :2], var_t), (th_e[:, None], d[:, 2:3], var_th))):
-            res = np.linalg.norm(est - out[j] * raw, axis=1) / np.sqrt(var)
-            w = np.minimum(1.0, WHEEL_HUBER_K / np.maximum(res, 1e-12)) / var
-            num = float(np.sum(w * np.sum(est * raw, axis=1))) + prior
-            den = float(np.sum(w * np.sum(raw * raw, axis=1))) + prior
-            out[j] = num / den
-        self.scale = np.clip(out, 0.8, 1.2)
 
     def profile(self, error: Callable[[np.ndarray], float]) -> None:
         """New (v, omega) scales of least profile error: `error(scales)` is the graph's
