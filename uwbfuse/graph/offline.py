@@ -177,8 +177,9 @@ class _WheelScale:
         c = np.array([sv, sv, sw])
         for k, d, cov, idx in zip(self.k.tolist(), self.delta, self.cov, self.index.tolist(),
                                   strict=True):
-            f = between_factor(X(k), X(k + 1), d * c, cov * np.outer(c, c),
-                               self.out_of_plane, WHEEL_HUBER_K)
+            # the covariance stays the encoders' white noise: scaled with the deltas, a
+            # larger scale would also loosen every factor and win by the error alone
+            f = between_factor(X(k), X(k + 1), d * c, cov, self.out_of_plane, WHEEL_HUBER_K)
             for graph in graphs:
                 graph.replace(idx, f)
         self.applied = self.scale.copy()
