@@ -205,11 +205,10 @@ def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
         np.testing.assert_array_equal(led[sel], want)
 
 
-def test_wheel_scale_profile_recovers_the_odometry_scale_and_rebuilds_the_factors():
-    """Test that `offline._WheelScale.profile` fits (v, omega) scales of 1.03 and 0.98 from
-    odometry that read 1/1.03 of the distance and 1/0.98 of the turn, held against the
-    true track by position priors (the ranges' part), and that `apply` replaces the wheel
-    factors at their indices with the scaled deltas."""
+def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors():
+    """Test that `offline._WheelScale` fits (v, omega) scales of 1.03 and 0.98 from a track
+    whose odometry read 1/1.03 of the distance and 1/0.98 of the turn, and that `apply`
+    replaces the wheel factors at their indices with the scaled deltas."""
     from uwbfuse.graph.builder import WheelRecords
     from uwbfuse.graph.keys import X
     from uwbfuse.graph.offline import _WheelScale
@@ -238,21 +237,8 @@ def test_wheel_scale_profile_recovers_the_odometry_scale_and_rebuilds_the_factor
     records = WheelRecords(k=list(range(n - 1)), delta=deltas, cov=[cov] * (n - 1),
                            index=list(range(n - 1)))
     ws = _WheelScale(records)
-    fixed = gtsam.NonlinearFactorGraph(graph)
-    hold = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 1e3, 0.01, 0.01, 0.01]))
-    for k in range(0, n, 10):  # positions (and level) held, heading free
-        fixed.add(gtsam.PriorFactorPose3(X(k), values.atPose3(X(k)), hold))
-
-    def error(sc: np.ndarray) -> float:
-        ws.scale = sc
-        ws.apply([fixed])
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(3)
-        return fixed.error(gtsam.LevenbergMarquardtOptimizer(fixed, values, params).optimize())
-
-    ws.profile(error)
+    ws.refit(values, n)
     assert ws.scale == pytest.approx([1.03, 0.98], abs=0.002)
-    ws.applied = np.ones(2)
     assert ws.apply([graph])
     f = graph.at(5)
     assert list(f.keys()) == [X(5), X(6)]

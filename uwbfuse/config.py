@@ -297,11 +297,6 @@ class GraphConfig(_Section):
         True, description="batch: calibrate the wheel odometry's speed and yaw-rate scale "
         "factors (wheel radius and track errors) against the smoothed track"
     )
-    estimate_wheel_noise: bool = Field(
-        True, description="batch: correct the wheel deltas by the odometry's slow drift "
-        "(random-walk speed scale and yaw-rate bias) and scale the wheel noise by the "
-        "factors of greatest Laplace evidence, both fitted from the log"
-    )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"

@@ -702,9 +702,7 @@ class GraphBuilder:
             self.imu.drop_before(t_a)
         return inc
 
-    def complete_wheel_records(self, offset_ns: int = 0,
-                               noise_scale: tuple[float, float] = (1.0, 1.0),
-                               delta: np.ndarray | None = None) -> None:
+    def complete_wheel_records(self, offset_ns: int = 0) -> None:
         """batch, once the whole log is in: the recorded wheel factors and the ranges' tag
         offsets from the complete wheel track.
 
@@ -715,18 +713,14 @@ class GraphBuilder:
         Offline the sample is there; a wrong extrapolation (a change of speed, a sample
         stamped late) otherwise stays in batch's graph (docs/results.md, "Plaza").
         `offset_ns`: the wheel stamps lag the range clock by this (the track at range time
-        t is the wheel track at t - offset). `noise_scale` (f_v, f_omega): the configured
-        wheel noise's translation and heading sigmas times these (`offline.fit_wheel_noise`);
-        `delta` (n, 3): the deltas with the odometry's slow drift corrected
-        (`offline.wheel_drift_deltas`), instead of the track's."""
+        t is the wheel track at t - offset)."""
         if not (self.record and self.has_wheel and len(self.wheel)) or self.full_graph is None:
             return
         wr = self.wheel_records
-        c = np.array([noise_scale[0], noise_scale[0], noise_scale[1]])
         for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
             t_a, t_b = self.time_of(ka) - offset_ns, self.time_of(ka + 1) - offset_ns
-            wr.delta[j] = self.wheel.between(t_a, t_b) if delta is None else delta[j]
-            wr.cov[j] = self.wheel.covariance(t_a, t_b, self.cfg.wheel) * np.outer(c, c)
+            wr.delta[j] = self.wheel.between(t_a, t_b)
+            wr.cov[j] = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             self.full_graph.replace(idx, between_factor(
                 X(ka), X(ka + 1), wr.delta[j], wr.cov[j], wr.out_of_plane, WHEEL_HUBER_K))
         rec = self.records

@@ -138,8 +138,6 @@ class GraphEstimator(EstimatorBase):
         self._hyp_count = 0
         self._batch_wall = 0.0
         self._wheel_offset_s: float | None = None  # batch: the wheel time offset chosen, s
-        # batch: the wheel noise factors (translation, heading) fitted, times the configured
-        self._wheel_noise: tuple[float, float] | None = None
         self._static: PoseEstimate | None = None  # standstill fix before the start
         # pose covariances (ROS order, map axes; `graph.marginal_covariances`): the newest
         # solved keyframe's (time, position, covariance, velocity covariance) that the
@@ -695,17 +693,7 @@ class GraphEstimator(EstimatorBase):
                 f += 0.25 * (e0 - e2) / curv
         log.debug("batch wheel time offset: errors %s at %s periods -> %.3f", errs, steps, f)
         self._wheel_offset_s = float(f * period / NS_PER_S)
-        off = round(f * period)
-        b.complete_wheel_records(off)
-        if not self.cfg.graph.estimate_wheel_noise:
-            return
-        graph, initial, rec = self.batch_inputs()
-        fit_graph = offline.motion_fit_graph(self.cfg, graph, rec,
-                                             b.scale if b.with_scale else None,
-                                             b.robust_sigma(), b.with_bias)
-        fac = offline.fit_wheel_noise(self.cfg, fit_graph, initial, b.wheel_records)
-        self._wheel_noise = (float(fac[0]), float(fac[1]))
-        b.complete_wheel_records(off, self._wheel_noise)
+        b.complete_wheel_records(round(f * period))
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
@@ -874,9 +862,6 @@ class GraphEstimator(EstimatorBase):
                         "wall_s": self._batch_wall}
             if self._wheel_offset_s is not None:
                 out[key]["wheel_time_offset_s"] = self._wheel_offset_s
-            if self._wheel_noise is not None:
-                out[key]["wheel_noise_factor"] = {"v": self._wheel_noise[0],
-                                                  "omega": self._wheel_noise[1]}
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}

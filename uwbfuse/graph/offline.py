@@ -39,7 +39,7 @@ from uwbfuse.graph.uwb import (
     nlos_state_factors,
     range_factor_keyed,
 )
-from uwbfuse.graph.wheel import between_factor, planar_covariance6
+from uwbfuse.graph.wheel import between_factor
 from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -111,20 +111,18 @@ class BatchResult:
 # more LM round (docs/results.md, "Wheel odometry scale").
 WHEEL_SCALE_SIGMA = 0.05  # prior std of the speed and yaw-rate scale factors (1 = none)
 WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale moved this much
-# the profile's steps (`_WheelScale.profile`): a third of the scale prior's std either side
-WHEEL_PROFILE_STEP = WHEEL_SCALE_SIGMA / 3.0
-# LM iterations of one profile point from the converged track: near the optimum the track's
-# answer to a scale change is one Gauss-Newton step; three for the Huber weights to settle
-WHEEL_PROFILE_LM_ITERATIONS = 3
 
 
 class _WheelScale:
-    """Odometry scale factors (v, omega) fitted with the smoothed track after LM.
+    """Odometry scale factors (v, omega) fitted to the smoothed track after LM.
 
-    `profile` takes the scales of least graph error (the track re-solved at each, prior
-    N(1, WHEEL_SCALE_SIGMA^2)); followed by an LM round. A GTSAM factor with the scale as a
-    variable would need a Python CustomFactor per keyframe (about 50x a native factor's
-    linearisation), so the scale stays outside the graph and the native
+    A refit is the weighted least-squares scale of the recorded keyframe-to-keyframe
+    wheel deltas (translation for v, yaw for omega) against the same motion at the current
+    estimate, Huber weights against slip, prior N(1, WHEEL_SCALE_SIGMA^2). Followed by an LM
+    round it is one step of block coordinate descent on the joint problem (track and
+    scale); further steps moved the simulated logs by under 0.5 mm. A GTSAM factor with
+    the scale as a variable would need a Python CustomFactor per keyframe (about 50x a
+    native factor's linearisation), so the scale stays outside the graph and the native
     `BetweenFactorPose3`s are rebuilt (`graph.replace`) when it moves.
     """
 
@@ -138,34 +136,28 @@ class _WheelScale:
         self.scale = np.ones(2)
         self.applied = np.ones(2)
 
-    def profile(self, error: Callable[[np.ndarray], float]) -> None:
-        """New (v, omega) scales of least profile error: `error(scales)` is the graph's
-        error after LM with the wheel factors at those scales (from the converged track),
-        plus the prior; per scale the vertex of the parabola through three scales
-        WHEEL_PROFILE_STEP apart (the error is quadratic in the scale near the optimum).
-
-        Unlike `refit`, whose track follows the odometry it is refitted against (with a
-        tight wheel noise the scale comes out shrunk towards the applied one by the share
-        of the track the wheel factors hold), this is the joint maximum-likelihood scale."""
+    def refit(self, values: gtsam.Values, n_kf: int) -> None:
+        """New (v, omega) scales from the keyframe poses in `values`."""
         if len(self.k) == 0:
             return
-        base = self.applied.copy()
-        h = WHEEL_PROFILE_STEP
-
-        def cost(sc: np.ndarray) -> float:
-            return error(sc) + 0.5 * float(np.sum((sc - 1.0) ** 2)) / WHEEL_SCALE_SIGMA**2
-
-        e1 = cost(base)
-        out = base.copy()
-        for j in range(2):
-            lo, hi = base.copy(), base.copy()
-            lo[j] -= h
-            hi[j] += h
-            e0, e2 = cost(lo), cost(hi)
-            curv = e0 - 2.0 * e1 + e2
-            if curv > 0:
-                out[j] += float(np.clip(0.5 * h * (e0 - e2) / curv, -3.0 * h, 3.0 * h))
-        log.debug("batch wheel scale profile: %s -> %s", base, out)
+        rot, trans = keyframe_arrays(values, n_kf)
+        k = self.k
+        ra = rot[k]
+        t_rel = np.einsum("nji,nj->ni", ra, trans[k + 1] - trans[k])[:, :2]
+        r_rel = np.einsum("nji,njk->nik", ra, rot[k + 1])
+        th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
+        d = self.delta
+        var_t = 0.5 * (self.cov[:, 0, 0] + self.cov[:, 1, 1]) + 1e-6
+        var_th = self.cov[:, 2, 2] + 1e-6
+        prior = WHEEL_SCALE_SIGMA**-2
+        out = self.scale.copy()
+        for j, (est, raw, var) in enumerate((
+                (t_rel, d[:, :2], var_t), (th_e[:, None], d[:, 2:3], var_th))):
+            res = np.linalg.norm(est - out[j] * raw, axis=1) / np.sqrt(var)
+            w = np.minimum(1.0, WHEEL_HUBER_K / np.maximum(res, 1e-12)) / var
+            num = float(np.sum(w * np.sum(est * raw, axis=1))) + prior
+            den = float(np.sum(w * np.sum(raw * raw, axis=1))) + prior
+            out[j] = num / den
         self.scale = np.clip(out, 0.8, 1.2)
 
     def apply(self, graphs: list[gtsam.NonlinearFactorGraph]) -> bool:
@@ -177,9 +169,8 @@ class _WheelScale:
         c = np.array([sv, sv, sw])
         for k, d, cov, idx in zip(self.k.tolist(), self.delta, self.cov, self.index.tolist(),
                                   strict=True):
-            # the covariance stays the encoders' white noise: scaled with the deltas, a
-            # larger scale would also loosen every factor and win by the error alone
-            f = between_factor(X(k), X(k + 1), d * c, cov, self.out_of_plane, WHEEL_HUBER_K)
+            f = between_factor(X(k), X(k + 1), d * c, cov * np.outer(c, c),
+                               self.out_of_plane, WHEEL_HUBER_K)
             for graph in graphs:
                 graph.replace(idx, f)
         self.applied = self.scale.copy()
@@ -586,13 +577,12 @@ def fitted_excess(fit: BatchResult, train: dict[str, np.ndarray], bias: np.ndarr
 
 
 def _run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-            max_iterations: int, relative_tol: float = LM_RELATIVE_TOL,
-            ) -> gtsam.LevenbergMarquardtOptimizer:
+            max_iterations: int) -> gtsam.LevenbergMarquardtOptimizer:
     """Levenberg-Marquardt over `graph` from `initial` at the batch's tolerances; the
     optimiser is returned after `optimize()` (its values, error and iteration count)."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
-    params.setRelativeErrorTol(relative_tol)
+    params.setRelativeErrorTol(LM_RELATIVE_TOL)
     params.setAbsoluteErrorTol(1e-6)
     opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
     opt.optimize()
@@ -840,18 +830,8 @@ def _solve_em(
     # the wheel scale is fitted once the range biases are free: fitted in the EM rounds,
     # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
-        static = [base_graph, *graphs.static.values()]
-
-        def scaled_error(sc: np.ndarray) -> float:
-            wheel_scale.scale = sc
-            wheel_scale.apply(static)
-            opt = _run_lm(graphs.with_ranges(False, rec["z"], sig_l, 1.0 - g, g), values,
-                          WHEEL_PROFILE_LM_ITERATIONS)
-            graphs.iterations += opt.iterations()
-            return float(opt.error())
-
-        wheel_scale.profile(scaled_error)
-        if wheel_scale.apply(static):
+        wheel_scale.refit(values, n_kf)
+        if wheel_scale.apply([base_graph, *graphs.static.values()]):
             values = lm_round(values, g, False)
             h, r_los = residuals(values)
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
@@ -992,16 +972,6 @@ def motion_fit_error(
     corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
     `initial`: a negative log-likelihood (up to a constant) to compare motion factors
     built differently by."""
-    graph = motion_fit_graph(cfg, base_graph, rec, scale, sigma, with_bias)
-    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
-
-
-def motion_fit_graph(
-    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, rec: dict[str, np.ndarray],
-    scale: np.ndarray | None, sigma: float, with_bias: bool,
-) -> gtsam.NonlinearFactorGraph:
-    """`base_graph` (copied, its factors' indices kept) plus every recorded range as a
-    Huber factor (see `motion_fit_error`)."""
     graph = gtsam.NonlinearFactorGraph(base_graph)
     a = rec["anchor"].astype(np.int64)
     z = rec["z"] / (1.0 + scale[a]) if scale is not None else rec["z"]
@@ -1010,112 +980,4 @@ def motion_fit_graph(
                               np.asarray(rec["tag_in_kf"], float), strict=True):
         graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
                                      gtsam.Pose3(gtsam.Rot3(), tag)))
-    return graph
-
-
-# Wheel white noise from the log (type-II maximum likelihood). The configured per-sample
-# sigmas (`wheel.sigma_v`, `wheel.sigma_omega`) are a guess; batch scales the translation
-# and heading parts of every wheel factor's covariance by the factors (f_v, f_omega) that
-# maximise the Laplace evidence of the motion-fit graph, once the deltas hold the slow drift
-# (`wheel_drift_deltas`). Coordinate ascent on a grid of WHEEL_NOISE_STEP (log2) steps
-# within +-WHEEL_NOISE_MAX_LOG2, then the vertex of the parabola through each factor's best
-# three (docs/results.md, "Wheel drift and noise from the log").
-WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
-WHEEL_NOISE_MAX_LOG2 = 4.0  # log2: factors within 1/16 .. 16 of the configured sigmas
-# log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
-# within a factor 4 at one sd): where the evidence is flat in a factor it stays near 1
-WHEEL_NOISE_PRIOR_LOG2 = 2.0
-# nats: the fitted factors replace the configured sigmas only where they raise the
-# log-evidence by this much, half the 5 % point of chi-square with 2 degrees of freedom
-# (a likelihood-ratio test of the two factors)
-WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
-
-
-def wheel_noise_log_evidence(
-    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, wheel: WheelRecords,
-    factors: tuple[float, float], max_iterations: int,
-) -> tuple[float, gtsam.Values]:
-    """Laplace log-evidence (nats, up to a constant) of `graph` with its wheel factors
-    (`wheel`'s, same indices, replaced in place) at their covariances scaled by
-    (f_v, f_v, f_omega) in (x, y, theta), and the LM solution it is taken at.
-
-    log p(z | f) ~ -E(x*) - 1/2 sum log det Sigma_wheel(f) - 1/2 log det H(x*): the graph
-    error at the optimum, the wheel factors' Gaussian normalisers and the Hessian's
-    log-determinant (`GaussianBayesNet.logDeterminant` of the eliminated linearisation is
-    1/2 log det H). Unlike an in-sample chi-square it is not biased where the wheel factors
-    alone hold the track (a range outage)."""
-    fv, fw = factors
-    c = np.array([fv, fv, fw])
-    half_logdet_cov = 0.0
-    for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
-        cs = cov * np.outer(c, c)
-        cov6 = planar_covariance6(cs, wheel.out_of_plane)
-        half_logdet_cov += 0.5 * float(np.linalg.slogdet(cov6)[1])
-        graph.replace(idx, between_factor(X(k), X(k + 1), d, cs, wheel.out_of_plane,
-                                          WHEEL_HUBER_K))
-    values = _run_lm(graph, initial, max_iterations).values()
-    half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
-    return -graph.error(values) - half_logdet_cov - half_logdet_h, values
-
-
-def fit_wheel_noise(
-    cfg: Config, graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-    wheel: WheelRecords,
-) -> np.ndarray:
-    """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
-    evidence (`wheel_noise_log_evidence`) over `graph` (a `motion_fit_graph`, copied) times
-    the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel factors, when the graph
-    is singular, or when the configured noise is not rejected (WHEEL_NOISE_TEST_NATS)."""
-    if not wheel.k:
-        return np.ones(2)
-    graph = gtsam.NonlinearFactorGraph(graph)
-    n_it = cfg.graph.lm_max_iterations
-    seen: dict[tuple[float, float], float] = {}
-    start = {"values": initial}
-
-    def score(u: tuple[float, float]) -> float:
-        if u not in seen:
-            ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
-                                                (2.0 ** u[0], 2.0 ** u[1]), n_it)
-            ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
-            seen[u] = ev
-            log.debug("wheel noise %s: %.2f", u, ev)
-            if ev >= max(seen.values()):
-                start["values"] = vals  # the next solve starts from the best so far
-        return seen[u]
-
-    best = (0.0, 0.0)
-    try:
-        score(best)
-        moved = True
-        while moved:
-            moved = False
-            for j in range(2):
-                for sign in (1.0, -1.0):
-                    while True:
-                        cand = list(best)
-                        cand[j] += sign * WHEEL_NOISE_STEP
-                        if abs(cand[j]) > WHEEL_NOISE_MAX_LOG2 or \
-                                score((cand[0], cand[1])) <= seen[best]:
-                            break
-                        best = (cand[0], cand[1])
-                        moved = True
-    except RuntimeError as exc:  # indeterminant linear system: keep the configured noise
-        log.warning("batch wheel noise: not fitted (%s)", str(exc).splitlines()[0]
-                    if str(exc) else "error")
-        return np.ones(2)
-    if seen[best] - seen[(0.0, 0.0)] <= WHEEL_NOISE_TEST_NATS:
-        return np.ones(2)
-    out = np.array(best)
-    for j in range(2):  # the vertex of the parabola through the best three, per factor
-        lo, hi = list(best), list(best)
-        lo[j] -= WHEEL_NOISE_STEP
-        hi[j] += WHEEL_NOISE_STEP
-        e0, e2 = seen.get((lo[0], lo[1])), seen.get((hi[0], hi[1]))
-        if e0 is None or e2 is None:
-            continue
-        curv = e0 - 2.0 * seen[best] + e2
-        if curv < 0:
-            out[j] += 0.5 * WHEEL_NOISE_STEP * (e0 - e2) / curv
-    log.debug("batch wheel noise: log2 factors %s -> %s (%d solves)", best, out, len(seen))
-    return 2.0 ** out
+    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
