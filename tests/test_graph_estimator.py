@@ -123,7 +123,7 @@ def test_nlos_modelling_beats_huber_alone():
     huber_only = Config()
     huber_only.graph.nlos = False
     res = estimate(log, Method.BATCH, with_model)
-    assert res.report["batch"]["em_start"] == "nlos-first"  # a wheeled log
+    assert res.report["batch"]["em_start"] == "nlos-first"  # online NLOS share 0.3+
     a = _ate(res.trajectory, log)
     b = _ate(estimate(log, Method.BATCH, huber_only).trajectory, log)
     e = _ate(estimate(log, Method.EKF, with_model).trajectory, log)
