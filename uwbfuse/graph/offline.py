@@ -111,6 +111,14 @@ class BatchResult:
 # more LM round (docs/results.md, "Wheel odometry scale").
 WHEEL_SCALE_SIGMA = 0.05  # prior std of the speed and yaw-rate scale factors (1 = none)
 WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale moved this much
+# Wheel slip (batch): each wheel factor is normal (encoder white noise, its level fitted) or
+# slip (broad), a two-class mixture fitted by EM on the factors' residuals at the track
+# (`_WheelScale.slip_em`). The slip class's extra spread, per second of the interval:
+SLIP_SPEED_SIGMA = 0.3  # m/s: a driven wheel spinning or skidding errs by ~30 % at 1 m/s
+SLIP_YAW_RATE_SIGMA = 0.5  # rad/s: one wheel 25 % fast at 1 m/s on a 0.5 m track
+WHEEL_SLIP_ROUNDS = 2  # slip E-steps at the track, each followed by an LM round
+SLIP_FIT_NOISE = False
+SLIP_EM_ROUNDS = 20  # E/M passes on fixed residuals (the share settles well within these)
 
 
 class _WheelScale:
@@ -126,7 +134,7 @@ class _WheelScale:
     `BetweenFactorPose3`s are rebuilt (`graph.replace`) when it moves.
     """
 
-    def __init__(self, records: WheelRecords) -> None:
+    def __init__(self, records: WheelRecords, dt_s: float = 0.0) -> None:
         wheel = records.arrays()
         self.k = wheel["k"]
         self.delta = wheel["delta"]
@@ -135,6 +143,67 @@ class _WheelScale:
         self.out_of_plane = records.out_of_plane
         self.scale = np.ones(2)
         self.applied = np.ones(2)
+        self.dt_s = dt_s  # keyframe interval (s) each wheel factor spans
+        # slip mixture (`slip_em`): each factor's slip responsibility, the slip share and
+        # the normal class's (translation, heading) sigma factors; None: not fitted
+        self.g_slip: np.ndarray | None = None
+        self.slip_share = 0.0
+        self.noise = np.ones(2)
+
+    def _residuals(self, values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
+        """Each factor's (x, y, theta) residual at `values` against its scaled delta, and the
+        scaled (x, y, theta) covariance (configured noise, 1 mm / 1 mrad floor)."""
+        rot, trans = keyframe_arrays(values, n_kf)
+        k = self.k
+        ra = rot[k]
+        t_rel = np.einsum("nji,nj->ni", ra, trans[k + 1] - trans[k])[:, :2]
+        r_rel = np.einsum("nji,njk->nik", ra, rot[k + 1])
+        th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
+        c = np.array([self.scale[0], self.scale[0], self.scale[1]])
+        d = self.delta * c
+        res = np.column_stack([t_rel - d[:, :2],
+                               np.angle(np.exp(1j * (th_e - d[:, 2])))])
+        cov = self.cov * np.outer(c, c) + 1e-6 * np.eye(3)
+        return res, cov
+
+    def _slip_cov(self, cov_n: np.ndarray) -> np.ndarray:
+        dt = self.dt_s
+        return cov_n + np.diag([(SLIP_SPEED_SIGMA * dt) ** 2] * 2
+                               + [(SLIP_YAW_RATE_SIGMA * dt) ** 2])
+
+    def slip_em(self, values: gtsam.Values, n_kf: int) -> None:
+        """Slip responsibilities, slip share and normal noise level from the residuals at
+        `values` (EM of the two-class Gaussian mixture, translation and heading noise
+        factors fitted to the normal-weighted whitened residuals)."""
+        if len(self.k) == 0 or self.dt_s <= 0:
+            return
+        res, cov = self._residuals(values, n_kf)
+        n = len(res)
+        pi = self.slip_share if self.g_slip is not None else 0.05
+        f = self.noise.copy()
+        q_t = np.einsum("ni,nij,nj->n", res[:, :2], np.linalg.inv(cov[:, :2, :2]), res[:, :2])
+        q_w = res[:, 2] ** 2 / cov[:, 2, 2]
+        g = np.zeros(n)
+        for _ in range(SLIP_EM_ROUNDS):
+            c = np.array([f[0], f[0], f[1]])
+            cov_n = cov * np.outer(c, c)
+            cov_s = self._slip_cov(cov_n)
+            ll = []
+            for cv in (cov_n, cov_s):
+                inv = np.linalg.inv(cv)
+                ll.append(-0.5 * np.einsum("ni,nij,nj->n", res, inv, res)
+                          - 0.5 * np.linalg.slogdet(cv)[1])
+            a = np.log(pi) + ll[1] - np.log1p(-pi) - ll[0]
+            g = 1.0 / (1.0 + np.exp(-np.clip(a, -50.0, 50.0)))
+            w = 1.0 - g
+            pi = float((np.sum(g) + 1.0) / (n + 2.0))  # Laplace rule: off 0 and 1
+            if SLIP_FIT_NOISE:
+                f = np.sqrt(np.array([np.sum(w * q_t) / (2.0 * np.sum(w)),
+                                      np.sum(w * q_w) / np.sum(w)]))
+                f = np.clip(f, 1.0 / 16.0, 16.0)
+        self.g_slip, self.slip_share, self.noise = g, pi, f
+        log.debug("batch wheel slip: share %.4f, noise factors %s, %d of %d above 0.5",
+                  pi, f, int(np.sum(g > 0.5)), n)
 
     def refit(self, values: gtsam.Values, n_kf: int) -> None:
         """New (v, omega) scales from the keyframe poses in `values`."""
@@ -163,14 +232,23 @@ class _WheelScale:
     def apply(self, graphs: list[gtsam.NonlinearFactorGraph]) -> bool:
         """Rebuild the wheel factors of `graphs` (same indices) at the current scales when
         they moved by WHEEL_SCALE_MIN_CHANGE; True when rebuilt."""
-        if np.max(np.abs(self.scale - self.applied)) < WHEEL_SCALE_MIN_CHANGE:
+        if self.g_slip is None and \
+                np.max(np.abs(self.scale - self.applied)) < WHEEL_SCALE_MIN_CHANGE:
             return False
         sv, sw = (float(x) for x in self.scale)
         c = np.array([sv, sv, sw])
-        for k, d, cov, idx in zip(self.k.tolist(), self.delta, self.cov, self.index.tolist(),
+        covs = self.cov * np.outer(c, c)
+        kernel: float | None = WHEEL_HUBER_K
+        if self.g_slip is not None:  # the mixture's expected information per factor
+            fn = np.array([self.noise[0], self.noise[0], self.noise[1]])
+            cov_n = (covs + 1e-6 * np.eye(3)) * np.outer(fn, fn)
+            info = ((1.0 - self.g_slip)[:, None, None] * np.linalg.inv(cov_n)
+                    + self.g_slip[:, None, None] * np.linalg.inv(self._slip_cov(cov_n)))
+            covs = np.linalg.inv(info) - 1e-6 * np.eye(3)
+            kernel = None
+        for k, d, cov, idx in zip(self.k.tolist(), self.delta, covs, self.index.tolist(),
                                   strict=True):
-            f = between_factor(X(k), X(k + 1), d * c, cov * np.outer(c, c),
-                               self.out_of_plane, WHEEL_HUBER_K)
+            f = between_factor(X(k), X(k + 1), d * c, cov, self.out_of_plane, kernel)
             for graph in graphs:
                 graph.replace(idx, f)
         self.applied = self.scale.copy()
@@ -378,7 +456,7 @@ class _Problem:
         """A fresh odometry scale fit (each LM run rebuilds its own wheel factors)."""
         if self.wheel is None or not self.wheel.k or not self.cfg.graph.estimate_wheel_scale:
             return None
-        return _WheelScale(self.wheel)
+        return _WheelScale(self.wheel, 1.0 / self.cfg.graph.keyframe_rate)
 
     def fit(self, m: RangeModel, rec: dict[str, np.ndarray], initial: gtsam.Values,
             mix: NlosModel, scale0: np.ndarray | None) -> BatchResult:
@@ -827,9 +905,11 @@ def _solve_em(
     # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
         wheel_scale.refit(values, n_kf)
-        if wheel_scale.apply([base_graph, *graphs.static.values()]):
-            values = lm_round(values, g, False)
-            h, r_los = residuals(values)
+        for _ in range(WHEEL_SLIP_ROUNDS):
+            wheel_scale.slip_em(values, n_kf)
+            if wheel_scale.apply([base_graph, *graphs.static.values()]):
+                values = lm_round(values, g, False)
+                h, r_los = residuals(values)
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
 
     nlos_out = None
