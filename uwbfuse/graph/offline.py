@@ -147,7 +147,7 @@ class _WheelScale:
         # slip mixture (`slip_em`): each factor's slip responsibility, the slip share and
         # the normal class's (translation, heading) sigma factors; None: not fitted
         self.g_slip: np.ndarray | None = None
-        self.slip_share = 0.0
+        self.slip_share = 0.05  # start of the share (EM re-estimates it)
         self.noise = np.ones(2)
 
     def _residuals(self, values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
@@ -179,7 +179,7 @@ class _WheelScale:
             return
         res, cov = self._residuals(values, n_kf)
         n = len(res)
-        pi = self.slip_share if self.g_slip is not None else 0.05
+        pi = self.slip_share
         f = self.noise.copy()
         q_t = np.einsum("ni,nij,nj->n", res[:, :2], np.linalg.inv(cov[:, :2, :2]), res[:, :2])
         q_w = res[:, 2] ** 2 / cov[:, 2, 2]
@@ -849,6 +849,12 @@ def _solve_em(
             values.insert(key, float(states.values[i]))
 
     graphs = _EmGraphs(g_cfg, base_graph, d0, states, mix, factors, with_bias)
+    if wheel_scale is not None:  # slip-first: every wheel factor broad, then the E-step
+        wheel_scale.g_slip = np.ones(len(wheel_scale.k))
+        wheel_scale.apply([base_graph])
+        values = graphs.lm_round(values, rec["z"], sig_l, g, freeze, EM_ROUND_LM_ITERATIONS)
+        wheel_scale.slip_em(values, n_kf)
+        wheel_scale.apply([base_graph, *graphs.static.values()])
 
     def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool,
                  max_it: int | None = None) -> gtsam.Values:
@@ -884,6 +890,9 @@ def _solve_em(
         done = it + 1
         # intermediate EM rounds only need LM to get close: the next E-step moves anyway
         values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
+        if wheel_scale is not None:
+            wheel_scale.slip_em(values, n_kf)
+            wheel_scale.apply([base_graph, *graphs.static.values()])
         h, r_los = residuals(values)
         if with_scale:
             refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
