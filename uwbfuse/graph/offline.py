@@ -39,7 +39,7 @@ from uwbfuse.graph.uwb import (
     nlos_state_factors,
     range_factor_keyed,
 )
-from uwbfuse.graph.wheel import between_factor, planar_covariance6
+from uwbfuse.graph.wheel import between_factor
 from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -111,14 +111,6 @@ class BatchResult:
 # more LM round (docs/results.md, "Wheel odometry scale").
 WHEEL_SCALE_SIGMA = 0.05  # prior std of the speed and yaw-rate scale factors (1 = none)
 WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale moved this much
-# Wheel slip (batch): each wheel factor is normal (encoder white noise, its level fitted) or
-# slip (broad), a two-class mixture fitted by EM on the factors' residuals at the track
-# (`_WheelScale.slip_em`). The slip class's extra spread, per second of the interval:
-SLIP_SPEED_SIGMA = 0.3  # m/s: a driven wheel spinning or skidding errs by ~30 % at 1 m/s
-SLIP_YAW_RATE_SIGMA = 0.5  # rad/s: one wheel 25 % fast at 1 m/s on a 0.5 m track
-WHEEL_SLIP_ROUNDS = 2  # slip E-steps at the track, each followed by an LM round
-SLIP_FIT_NOISE = False
-SLIP_EM_ROUNDS = 20  # E/M passes on fixed residuals (the share settles well within these)
 
 
 class _WheelScale:
@@ -134,7 +126,7 @@ class _WheelScale:
     `BetweenFactorPose3`s are rebuilt (`graph.replace`) when it moves.
     """
 
-    def __init__(self, records: WheelRecords, dt_s: float = 0.0) -> None:
+    def __init__(self, records: WheelRecords) -> None:
         wheel = records.arrays()
         self.k = wheel["k"]
         self.delta = wheel["delta"]
@@ -143,67 +135,6 @@ class _WheelScale:
         self.out_of_plane = records.out_of_plane
         self.scale = np.ones(2)
         self.applied = np.ones(2)
-        self.dt_s = dt_s  # keyframe interval (s) each wheel factor spans
-        # slip mixture (`slip_em`): each factor's slip responsibility, the slip share and
-        # the normal class's (translation, heading) sigma factors; None: not fitted
-        self.g_slip: np.ndarray | None = None
-        self.slip_share = 0.05  # start of the share (EM re-estimates it)
-        self.noise = np.ones(2)
-
-    def _residuals(self, values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each factor's (x, y, theta) residual at `values` against its scaled delta, and the
-        scaled (x, y, theta) covariance (configured noise, 1 mm / 1 mrad floor)."""
-        rot, trans = keyframe_arrays(values, n_kf)
-        k = self.k
-        ra = rot[k]
-        t_rel = np.einsum("nji,nj->ni", ra, trans[k + 1] - trans[k])[:, :2]
-        r_rel = np.einsum("nji,njk->nik", ra, rot[k + 1])
-        th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
-        c = np.array([self.scale[0], self.scale[0], self.scale[1]])
-        d = self.delta * c
-        res = np.column_stack([t_rel - d[:, :2],
-                               np.angle(np.exp(1j * (th_e - d[:, 2])))])
-        cov = self.cov * np.outer(c, c) + 1e-6 * np.eye(3)
-        return res, cov
-
-    def _slip_cov(self, cov_n: np.ndarray) -> np.ndarray:
-        dt = self.dt_s
-        return cov_n + np.diag([(SLIP_SPEED_SIGMA * dt) ** 2] * 2
-                               + [(SLIP_YAW_RATE_SIGMA * dt) ** 2])
-
-    def slip_em(self, values: gtsam.Values, n_kf: int) -> None:
-        """Slip responsibilities, slip share and normal noise level from the residuals at
-        `values` (EM of the two-class Gaussian mixture, translation and heading noise
-        factors fitted to the normal-weighted whitened residuals)."""
-        if len(self.k) == 0 or self.dt_s <= 0:
-            return
-        res, cov = self._residuals(values, n_kf)
-        n = len(res)
-        pi = self.slip_share
-        f = self.noise.copy()
-        q_t = np.einsum("ni,nij,nj->n", res[:, :2], np.linalg.inv(cov[:, :2, :2]), res[:, :2])
-        q_w = res[:, 2] ** 2 / cov[:, 2, 2]
-        g = np.zeros(n)
-        for _ in range(SLIP_EM_ROUNDS):
-            c = np.array([f[0], f[0], f[1]])
-            cov_n = cov * np.outer(c, c)
-            cov_s = self._slip_cov(cov_n)
-            ll = []
-            for cv in (cov_n, cov_s):
-                inv = np.linalg.inv(cv)
-                ll.append(-0.5 * np.einsum("ni,nij,nj->n", res, inv, res)
-                          - 0.5 * np.linalg.slogdet(cv)[1])
-            a = np.log(pi) + ll[1] - np.log1p(-pi) - ll[0]
-            g = 1.0 / (1.0 + np.exp(-np.clip(a, -50.0, 50.0)))
-            w = 1.0 - g
-            pi = float((np.sum(g) + 1.0) / (n + 2.0))  # Laplace rule: off 0 and 1
-            if SLIP_FIT_NOISE:
-                f = np.sqrt(np.array([np.sum(w * q_t) / (2.0 * np.sum(w)),
-                                      np.sum(w * q_w) / np.sum(w)]))
-                f = np.clip(f, 1.0 / 16.0, 16.0)
-        self.g_slip, self.slip_share, self.noise = g, pi, f
-        log.debug("batch wheel slip: share %.4f, noise factors %s, %d of %d above 0.5",
-                  pi, f, int(np.sum(g > 0.5)), n)
 
     def refit(self, values: gtsam.Values, n_kf: int) -> None:
         """New (v, omega) scales from the keyframe poses in `values`."""
@@ -232,23 +163,14 @@ class _WheelScale:
     def apply(self, graphs: list[gtsam.NonlinearFactorGraph]) -> bool:
         """Rebuild the wheel factors of `graphs` (same indices) at the current scales when
         they moved by WHEEL_SCALE_MIN_CHANGE; True when rebuilt."""
-        if self.g_slip is None and \
-                np.max(np.abs(self.scale - self.applied)) < WHEEL_SCALE_MIN_CHANGE:
+        if np.max(np.abs(self.scale - self.applied)) < WHEEL_SCALE_MIN_CHANGE:
             return False
         sv, sw = (float(x) for x in self.scale)
         c = np.array([sv, sv, sw])
-        covs = self.cov * np.outer(c, c)
-        kernel: float | None = WHEEL_HUBER_K
-        if self.g_slip is not None:  # the mixture's expected information per factor
-            fn = np.array([self.noise[0], self.noise[0], self.noise[1]])
-            cov_n = (covs + 1e-6 * np.eye(3)) * np.outer(fn, fn)
-            info = ((1.0 - self.g_slip)[:, None, None] * np.linalg.inv(cov_n)
-                    + self.g_slip[:, None, None] * np.linalg.inv(self._slip_cov(cov_n)))
-            covs = np.linalg.inv(info) - 1e-6 * np.eye(3)
-            kernel = None
-        for k, d, cov, idx in zip(self.k.tolist(), self.delta, covs, self.index.tolist(),
+        for k, d, cov, idx in zip(self.k.tolist(), self.delta, self.cov, self.index.tolist(),
                                   strict=True):
-            f = between_factor(X(k), X(k + 1), d * c, cov, self.out_of_plane, kernel)
+            f = between_factor(X(k), X(k + 1), d * c, cov * np.outer(c, c),
+                               self.out_of_plane, WHEEL_HUBER_K)
             for graph in graphs:
                 graph.replace(idx, f)
         self.applied = self.scale.copy()
@@ -456,7 +378,7 @@ class _Problem:
         """A fresh odometry scale fit (each LM run rebuilds its own wheel factors)."""
         if self.wheel is None or not self.wheel.k or not self.cfg.graph.estimate_wheel_scale:
             return None
-        return _WheelScale(self.wheel, 1.0 / self.cfg.graph.keyframe_rate)
+        return _WheelScale(self.wheel)
 
     def fit(self, m: RangeModel, rec: dict[str, np.ndarray], initial: gtsam.Values,
             mix: NlosModel, scale0: np.ndarray | None) -> BatchResult:
@@ -849,12 +771,6 @@ def _solve_em(
             values.insert(key, float(states.values[i]))
 
     graphs = _EmGraphs(g_cfg, base_graph, d0, states, mix, factors, with_bias)
-    if wheel_scale is not None:  # slip-first: every wheel factor broad, then the E-step
-        wheel_scale.g_slip = np.ones(len(wheel_scale.k))
-        wheel_scale.apply([base_graph])
-        values = graphs.lm_round(values, rec["z"], sig_l, g, freeze, EM_ROUND_LM_ITERATIONS)
-        wheel_scale.slip_em(values, n_kf)
-        wheel_scale.apply([base_graph, *graphs.static.values()])
 
     def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool,
                  max_it: int | None = None) -> gtsam.Values:
@@ -890,9 +806,6 @@ def _solve_em(
         done = it + 1
         # intermediate EM rounds only need LM to get close: the next E-step moves anyway
         values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
-        if wheel_scale is not None:
-            wheel_scale.slip_em(values, n_kf)
-            wheel_scale.apply([base_graph, *graphs.static.values()])
         h, r_los = residuals(values)
         if with_scale:
             refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
@@ -914,11 +827,9 @@ def _solve_em(
     # with D(a) held at zero, it would take up the radios' range offsets
     if wheel_scale is not None:
         wheel_scale.refit(values, n_kf)
-        for _ in range(WHEEL_SLIP_ROUNDS):
-            wheel_scale.slip_em(values, n_kf)
-            if wheel_scale.apply([base_graph, *graphs.static.values()]):
-                values = lm_round(values, g, False)
-                h, r_los = residuals(values)
+        if wheel_scale.apply([base_graph, *graphs.static.values()]):
+            values = lm_round(values, g, False)
+            h, r_los = residuals(values)
     w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
 
     nlos_out = None
@@ -1057,16 +968,6 @@ def motion_fit_error(
     corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
     `initial`: a negative log-likelihood (up to a constant) to compare motion factors
     built differently by."""
-    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
-    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
-
-
-def _with_robust_ranges(
-    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, rec: dict[str, np.ndarray],
-    scale: np.ndarray | None, sigma: float, with_bias: bool,
-) -> gtsam.NonlinearFactorGraph:
-    """`base_graph` (copied, its factors' indices kept) plus every recorded range as a
-    Huber factor (see `motion_fit_error`)."""
     graph = gtsam.NonlinearFactorGraph(base_graph)
     a = rec["anchor"].astype(np.int64)
     z = rec["z"] / (1.0 + scale[a]) if scale is not None else rec["z"]
@@ -1075,119 +976,4 @@ def _with_robust_ranges(
                               np.asarray(rec["tag_in_kf"], float), strict=True):
         graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
                                      gtsam.Pose3(gtsam.Rot3(), tag)))
-    return graph
-
-
-# Wheel noise from the log (type-II maximum likelihood). The configured per-sample sigmas
-# (`wheel.sigma_v`, `wheel.sigma_omega`) are a guess; batch scales the translation and the
-# heading parts of every wheel factor's covariance by the factors (f_v, f_omega) that
-# maximise the Laplace evidence of the motion-fit graph (`motion_fit_error`'s). The search
-# runs on a grid of WHEEL_NOISE_STEP (log2) steps within +-WHEEL_NOISE_MAX_LOG2, one
-# coordinate at a time, then the vertex of the parabola through each factor's best three
-# (docs/results.md, "Wheel noise from the log").
-WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
-WHEEL_NOISE_MAX_LOG2 = 4.0  # log2: factors within 1/16 .. 16 of the configured sigmas
-# log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
-# within a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors'
-# 1 mm / 1 mrad floor reached, or ranges that outweigh the odometry) it stays near 1
-# instead of drifting to the search's edge on noise-level differences
-WHEEL_NOISE_PRIOR_LOG2 = 2.0
-# nats: the fitted factors replace the configured sigmas only where they raise the
-# log-evidence by this much, half the 5 % point of chi-square with 2 degrees of freedom
-# (a likelihood-ratio test of the two factors): a flat evidence (Labyrinth: 1 nat over
-# 1/4 .. 4) keeps the configuration rather than a vertex placed by noise
-WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
-
-
-def wheel_noise_log_evidence(
-    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, wheel: WheelRecords,
-    factors: tuple[float, float], max_iterations: int,
-) -> tuple[float, gtsam.Values]:
-    """Laplace log-evidence (nats, up to a constant) of `graph` with its wheel factors
-    (`wheel`'s, same indices, replaced in place) at their covariances scaled by
-    (f_v, f_v, f_omega) in (x, y, theta), and the LM solution it is taken at.
-
-    log p(z | f) ~ -E(x*) - 1/2 sum log det Sigma_wheel(f) - 1/2 log det H(x*): the graph
-    error at the optimum, the wheel factors' Gaussian normalisers and the Hessian's
-    log-determinant (`GaussianBayesNet.logDeterminant` of the eliminated linearisation is
-    1/2 log det H). Unlike the error alone it does not favour the loosest noise, and unlike
-    an in-sample chi-square it is not biased where the wheel factors alone hold the track
-    (a range outage: there the factors' residuals carry no information about their noise).
-    Huber kernels enter through their loss and their weights at x*."""
-    fv, fw = factors
-    c = np.array([fv, fv, fw])
-    half_logdet_cov = 0.0
-    for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
-        cs = cov * np.outer(c, c)
-        cov6 = planar_covariance6(cs, wheel.out_of_plane)
-        half_logdet_cov += 0.5 * float(np.linalg.slogdet(cov6)[1])
-        graph.replace(idx, between_factor(X(k), X(k + 1), d, cs, wheel.out_of_plane,
-                                          WHEEL_HUBER_K))
-    values = _run_lm(graph, initial, max_iterations).values()
-    half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
-    return -graph.error(values) - half_logdet_cov - half_logdet_h, values
-
-
-def fit_wheel_noise(
-    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-    rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
-    wheel: WheelRecords,
-) -> np.ndarray:
-    """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
-    evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
-    `motion_fit_error` times the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel
-    factors, when the graph is singular, or when the configured noise is not rejected
-    (WHEEL_NOISE_TEST_NATS)."""
-    if not wheel.k:
-        return np.ones(2)
-    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
-    n_it = cfg.graph.lm_max_iterations
-    seen: dict[tuple[float, float], float] = {}
-    start = {"values": initial}
-
-    def score(u: tuple[float, float]) -> float:
-        if u not in seen:
-            ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
-                                                (2.0 ** u[0], 2.0 ** u[1]), n_it)
-            ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
-            seen[u] = ev
-            log.debug("wheel noise %s: %.2f", u, ev)
-            if ev >= max(seen.values()):
-                start["values"] = vals  # the next solve starts from the best so far
-        return seen[u]
-
-    best = (0.0, 0.0)
-    try:
-        score(best)
-        moved = True
-        while moved:
-            moved = False
-            for j in range(2):
-                for sign in (1.0, -1.0):
-                    while True:
-                        cand = list(best)
-                        cand[j] += sign * WHEEL_NOISE_STEP
-                        if abs(cand[j]) > WHEEL_NOISE_MAX_LOG2 or \
-                                score((cand[0], cand[1])) <= seen[best]:
-                            break
-                        best = (cand[0], cand[1])
-                        moved = True
-    except RuntimeError as exc:  # indeterminant linear system: keep the configured noise
-        log.warning("batch wheel noise: not fitted (%s)", str(exc).splitlines()[0]
-                    if str(exc) else "error")
-        return np.ones(2)
-    if seen[best] - seen[(0.0, 0.0)] <= WHEEL_NOISE_TEST_NATS:
-        return np.ones(2)
-    out = np.array(best)
-    for j in range(2):  # the vertex of the parabola through the best three, per factor
-        lo, hi = list(best), list(best)
-        lo[j] -= WHEEL_NOISE_STEP
-        hi[j] += WHEEL_NOISE_STEP
-        e0, e2 = seen.get((lo[0], lo[1])), seen.get((hi[0], hi[1]))
-        if e0 is None or e2 is None:
-            continue
-        curv = e0 - 2.0 * seen[best] + e2
-        if curv < 0:
-            out[j] += 0.5 * WHEEL_NOISE_STEP * (e0 - e2) / curv
-    log.debug("batch wheel noise: log2 factors %s -> %s (%d solves)", best, out, len(seen))
-    return 2.0 ** out
+    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
