@@ -29,7 +29,7 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.estimator import Estimator, EstimatorBase, PoseEstimate, RangeClasses
 from uwbfuse.methods import Method, make_estimator
-from uwbfuse.positioning.start import STATIC_MAX_SPEED, STATIC_MAX_YAW_RATE
+from uwbfuse.positioning.start import wheels_still
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
 
 DROP_AFTER_EPOCHS = 20
@@ -75,7 +75,7 @@ class PreStart(EstimatorBase):
         self._silent_since: int | None = None
         self._last_provisional: PoseEstimate | None = None
         self._provisional = True
-        self._still_since: int | None = None  # ns: wheels within the STATIC_MAX_* since
+        self._still_since: int | None = None  # ns: wheels still (`wheels_still`) since
         self._wheel_last: int | None = None   # ns: last wheel sample
         self._still_sum = np.zeros(3)         # fallback fixes since _still_since ...
         self._still_n = 0                     # ... and their number
@@ -109,7 +109,7 @@ class PreStart(EstimatorBase):
         averages the interval ending at its stamp, so the last moving one ends the motion)."""
         if not len(t):
             return
-        still = (np.abs(v) < STATIC_MAX_SPEED) & (np.abs(omega) < STATIC_MAX_YAW_RATE)
+        still = wheels_still(v, omega)
         moving = np.flatnonzero(~still)
         if len(moving):
             self._still_since = int(t[moving[-1]]) if moving[-1] < len(t) - 1 else None

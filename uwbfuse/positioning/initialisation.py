@@ -1089,17 +1089,17 @@ def accept_start(
 
 def _last_standstill(wheel: tuple, w_start: int, t_ns: int,
                      min_s: float) -> tuple[int, int] | None:
-    """[start, end) ns of the last standstill of the wheels (every sample within the
-    `start.STATIC_MAX_*` speeds, at least `min_s` s long) that ended after w_start and
+    """[start, end) ns of the last standstill of the wheels (every sample still,
+    `start.wheels_still`, at least `min_s` s long) that ended after w_start and
     before t_ns, or None."""
-    from uwbfuse.positioning.start import STATIC_MAX_SPEED, STATIC_MAX_YAW_RATE
+    from uwbfuse.positioning.start import wheels_still
 
     t, v, om = wheel
     sel = t <= t_ns
     t, v, om = t[sel], v[sel], om[sel]
     if len(t) < 3:
         return None
-    still = (np.abs(v) < STATIC_MAX_SPEED) & (np.abs(om) < STATIC_MAX_YAW_RATE)
+    still = wheels_still(v, om)
     # runs of still samples j..k (k not the newest: the standstill has ended); a sample
     # averages the interval that ends at its stamp, so run j..k is still over (t[j-1], t[k]]
     edge = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))

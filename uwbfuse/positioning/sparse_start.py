@@ -27,13 +27,12 @@ from uwbfuse.config import Config
 from uwbfuse.positioning.start import (
     MIN_TRAVEL_M,
     STATIC_MAX_DRIFT_M,
-    STATIC_MAX_SPEED,
     STATIC_MAX_TURN_RAD,
-    STATIC_MAX_YAW_RATE,
     planar_height,
     solve_start,
     solve_static,
     track_travel,
+    wheels_still,
 )
 from uwbfuse.positioning.wheel_track import WheelTrack
 from uwbfuse.streams import NS_PER_S, AnchorMap
@@ -168,8 +167,7 @@ class SparseStartInitialiser:
             return False
         i0, i1 = np.searchsorted(w.t, [t_from, t_to])
         seg = slice(max(i0 - 1, 0), min(i1 + 1, len(w)))
-        if (np.max(np.abs(w.v[seg])) > STATIC_MAX_SPEED
-                or np.max(np.abs(w.w[seg])) > STATIC_MAX_YAW_RATE):
+        if not np.all(wheels_still(w.v[seg], w.w[seg])):
             return False
         p = w.pose[seg]
         drift = float(np.max(np.hypot(p[:, 0] - p[0, 0], p[:, 1] - p[0, 1])))

@@ -124,6 +124,15 @@ STATIC_MAX_RANGES = 2000  # the newest ones are kept on a long standstill
 # and -7 mrad/s at rest, so a path-length test would fail within seconds) ...
 STATIC_MAX_SPEED = 0.05  # m/s
 STATIC_MAX_YAW_RATE = 0.05  # rad/s
+
+
+def wheels_still(v: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """Per wheel sample (speed m/s, yaw rate rad/s): standing still, within the
+    STATIC_MAX_* speeds; the one test of the start, the standstill fix and the pre-start
+    poses."""
+    return (np.abs(v) <= STATIC_MAX_SPEED) & (np.abs(omega) <= STATIC_MAX_YAW_RATE)
+
+
 # ... and the dead-reckoned track within these of where it was at the first range
 STATIC_MAX_DRIFT_M = 0.3
 STATIC_MAX_TURN_RAD = 0.3
