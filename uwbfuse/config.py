@@ -297,6 +297,10 @@ class GraphConfig(_Section):
         True, description="batch: calibrate the wheel odometry's speed and yaw-rate scale "
         "factors (wheel radius and track errors) against the smoothed track"
     )
+    estimate_wheel_noise: bool = Field(
+        True, description="batch: scale the wheel noise (translation and heading sigmas) "
+        "by the factors of greatest Laplace evidence of the motion-fit graph"
+    )
     nlos: bool = Field(True, description="model NLOS (positive range bias) on top of the kernel")
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"

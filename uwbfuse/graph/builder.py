@@ -706,7 +706,8 @@ class GraphBuilder:
             self.imu.drop_before(t_a)
         return inc
 
-    def complete_wheel_records(self, offset_ns: int = 0) -> None:
+    def complete_wheel_records(self, offset_ns: int = 0,
+                               noise_scale: tuple[float, float] = (1.0, 1.0)) -> None:
         """batch, once the whole log is in: the recorded wheel factors and the ranges' tag
         offsets from the complete wheel track.
 
@@ -717,7 +718,8 @@ class GraphBuilder:
         Offline the sample is there; a wrong extrapolation (a change of speed, a sample
         stamped late) otherwise stays in batch's graph (docs/results.md, "Plaza").
         `offset_ns`: the wheel stamps lag the range clock by this (the track at range time
-        t is the wheel track at t - offset)."""
+        t is the wheel track at t - offset). `noise_scale` (f_v, f_omega): the configured
+        wheel noise's translation and heading sigmas times these (`offline.fit_wheel_noise`)."""
         if not (self.record and self.has_wheel and len(self.wheel)) or self.full_graph is None:
             return
         wr = self.wheel_records
@@ -725,7 +727,8 @@ class GraphBuilder:
             t_a = np.array([self.time_of(ka) - offset_ns for ka in wr.k], np.int64)
             t_b = t_a + self.period_ns
             delta = self.wheel.between(t_a, t_b)
-            cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
+            c = np.array([noise_scale[0], noise_scale[0], noise_scale[1]])
+            cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel) * np.outer(c, c)
             for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
                 wr.delta[j], wr.cov[j] = delta[j], cov[j]
                 self.full_graph.replace(idx, between_factor(

@@ -138,6 +138,8 @@ class GraphEstimator(EstimatorBase):
         self._hyp_count = 0
         self._batch_wall = 0.0
         self._wheel_offset_s: float | None = None  # batch: the wheel time offset chosen, s
+        # batch: the wheel noise factors (translation, heading) fitted, times the configured
+        self._wheel_noise: tuple[float, float] | None = None
         self._static: PoseEstimate | None = None  # standstill fix before the start
         # pose covariances (ROS order, map axes; `graph.marginal_covariances`): the newest
         # solved keyframe's (time, position, covariance, velocity covariance) that the
@@ -700,7 +702,8 @@ class GraphEstimator(EstimatorBase):
         maximum-likelihood one over -1 .. +1 wheel periods in half periods (which interval
         a sample covers is what logs disagree on), each scored by the error after one Huber
         LM of the recorded graph with the ranges at the online robust sigma
-        (`offline.motion_fit_error`)."""
+        (`offline.motion_fit_error`); then, at that offset, the wheel noise of greatest
+        evidence (`offline.fit_wheel_noise`, `graph.estimate_wheel_noise`)."""
         b = self.builder
         assert b is not None
         if not (b.has_wheel and len(self.wheel) > 1):
@@ -726,6 +729,13 @@ class GraphEstimator(EstimatorBase):
         log.debug("batch wheel time offset: errors %s at %s periods -> %.3f", errs, steps, f)
         self._wheel_offset_s = float(f * period / NS_PER_S)
         b.complete_wheel_records(round(f * period))
+        if self.cfg.graph.estimate_wheel_noise:
+            graph, initial, rec = self.batch_inputs()
+            fac = offline.fit_wheel_noise(self.cfg, graph, initial, rec,
+                                          b.scale if b.with_scale else None,
+                                          b.robust_sigma(), b.with_bias, b.wheel_records)
+            self._wheel_noise = (float(fac[0]), float(fac[1]))
+            b.complete_wheel_records(round(f * period), self._wheel_noise)
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
@@ -894,6 +904,9 @@ class GraphEstimator(EstimatorBase):
                         "wall_s": self._batch_wall}
             if self._wheel_offset_s is not None:
                 out[key]["wheel_time_offset_s"] = self._wheel_offset_s
+            if self._wheel_noise is not None:
+                out[key]["wheel_noise_factor"] = {"v": self._wheel_noise[0],
+                                                  "omega": self._wheel_noise[1]}
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}

@@ -39,7 +39,7 @@ from uwbfuse.graph.uwb import (
     nlos_state_factors,
     range_factor_keyed,
 )
-from uwbfuse.graph.wheel import between_factor
+from uwbfuse.graph.wheel import between_factor, planar_covariance6
 from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -976,6 +976,16 @@ def motion_fit_error(
     corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
     `initial`: a negative log-likelihood (up to a constant) to compare motion factors
     built differently by."""
+    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
+    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
+
+
+def _with_robust_ranges(
+    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, rec: dict[str, np.ndarray],
+    scale: np.ndarray | None, sigma: float, with_bias: bool,
+) -> gtsam.NonlinearFactorGraph:
+    """`base_graph` (copied, its factors' indices kept) plus every recorded range as a
+    Huber factor (see `motion_fit_error`)."""
     graph = gtsam.NonlinearFactorGraph(base_graph)
     a = rec["anchor"].astype(np.int64)
     z = rec["z"] / (1.0 + scale[a]) if scale is not None else rec["z"]
@@ -984,4 +994,111 @@ def motion_fit_error(
                               np.asarray(rec["tag_in_kf"], float), strict=True):
         graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
                                      gtsam.Pose3(gtsam.Rot3(), tag)))
-    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
+    return graph
+
+
+# Wheel noise from the log (type-II maximum likelihood). The configured per-sample sigmas
+# (`wheel.sigma_v`, `wheel.sigma_omega`) are a guess; batch scales the translation and the
+# heading parts of every wheel factor's covariance by the factors (f_v, f_omega) that
+# maximise the Laplace evidence of the motion-fit graph (`motion_fit_error`'s). The search
+# runs on a grid of WHEEL_NOISE_STEP (log2) steps within +-WHEEL_NOISE_MAX_LOG2, one
+# coordinate at a time, then the vertex of the parabola through each factor's best three
+# (docs/results.md, "Wheel noise from the log").
+WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
+WHEEL_NOISE_MAX_LOG2 = 4.0  # log2: factors within 1/16 .. 16 of the configured sigmas
+# log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
+# within a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors'
+# 1 mm / 1 mrad floor reached, or ranges that outweigh the odometry) it stays near 1
+# instead of drifting to the search's edge on noise-level differences
+WHEEL_NOISE_PRIOR_LOG2 = 2.0
+
+
+def wheel_noise_log_evidence(
+    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, wheel: WheelRecords,
+    factors: tuple[float, float], max_iterations: int,
+) -> tuple[float, gtsam.Values]:
+    """Laplace log-evidence (nats, up to a constant) of `graph` with its wheel factors
+    (`wheel`'s, same indices, replaced in place) at their covariances scaled by
+    (f_v, f_v, f_omega) in (x, y, theta), and the LM solution it is taken at.
+
+    log p(z | f) ~ -E(x*) - 1/2 sum log det Sigma_wheel(f) - 1/2 log det H(x*): the graph
+    error at the optimum, the wheel factors' Gaussian normalisers and the Hessian's
+    log-determinant (`GaussianBayesNet.logDeterminant` of the eliminated linearisation is
+    1/2 log det H). Unlike the error alone it does not favour the loosest noise, and unlike
+    an in-sample chi-square it is not biased where the wheel factors alone hold the track
+    (a range outage: there the factors' residuals carry no information about their noise).
+    Huber kernels enter through their loss and their weights at x*."""
+    fv, fw = factors
+    c = np.array([fv, fv, fw])
+    half_logdet_cov = 0.0
+    for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
+        cs = cov * np.outer(c, c)
+        cov6 = planar_covariance6(cs, wheel.out_of_plane)
+        half_logdet_cov += 0.5 * float(np.linalg.slogdet(cov6)[1])
+        graph.replace(idx, between_factor(X(k), X(k + 1), d, cs, wheel.out_of_plane,
+                                          WHEEL_HUBER_K))
+    values = _run_lm(graph, initial, max_iterations).values()
+    half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
+    return -graph.error(values) - half_logdet_cov - half_logdet_h, values
+
+
+def fit_wheel_noise(
+    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+    rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
+    wheel: WheelRecords,
+) -> np.ndarray:
+    """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
+    evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
+    `motion_fit_error` times the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel
+    factors or when the graph is singular."""
+    if not wheel.k:
+        return np.ones(2)
+    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
+    n_it = cfg.graph.lm_max_iterations
+    seen: dict[tuple[float, float], float] = {}
+    start = {"values": initial}
+
+    def score(u: tuple[float, float]) -> float:
+        if u not in seen:
+            ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
+                                                (2.0 ** u[0], 2.0 ** u[1]), n_it)
+            ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
+            seen[u] = ev
+            log.debug("wheel noise %s: %.2f", u, ev)
+            if ev >= max(seen.values()):
+                start["values"] = vals  # the next solve starts from the best so far
+        return seen[u]
+
+    best = (0.0, 0.0)
+    try:
+        score(best)
+        moved = True
+        while moved:
+            moved = False
+            for j in range(2):
+                for sign in (1.0, -1.0):
+                    while True:
+                        cand = list(best)
+                        cand[j] += sign * WHEEL_NOISE_STEP
+                        if abs(cand[j]) > WHEEL_NOISE_MAX_LOG2 or \
+                                score((cand[0], cand[1])) <= seen[best]:
+                            break
+                        best = (cand[0], cand[1])
+                        moved = True
+    except RuntimeError as exc:  # indeterminant linear system: keep the configured noise
+        log.warning("batch wheel noise: not fitted (%s)", str(exc).splitlines()[0]
+                    if str(exc) else "error")
+        return np.ones(2)
+    out = np.array(best)
+    for j in range(2):  # the vertex of the parabola through the best three, per factor
+        lo, hi = list(best), list(best)
+        lo[j] -= WHEEL_NOISE_STEP
+        hi[j] += WHEEL_NOISE_STEP
+        e0, e2 = seen.get((lo[0], lo[1])), seen.get((hi[0], hi[1]))
+        if e0 is None or e2 is None:
+            continue
+        curv = e0 - 2.0 * seen[best] + e2
+        if curv < 0:
+            out[j] += 0.5 * WHEEL_NOISE_STEP * (e0 - e2) / curv
+    log.debug("batch wheel noise: log2 factors %s -> %s (%d solves)", best, out, len(seen))
+    return 2.0 ** out
