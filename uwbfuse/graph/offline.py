@@ -1011,6 +1011,11 @@ WHEEL_NOISE_MAX_LOG2 = 4.0  # log2: factors within 1/16 .. 16 of the configured 
 # 1 mm / 1 mrad floor reached, or ranges that outweigh the odometry) it stays near 1
 # instead of drifting to the search's edge on noise-level differences
 WHEEL_NOISE_PRIOR_LOG2 = 2.0
+# nats: the fitted factors replace the configured sigmas only where they raise the
+# log-evidence by this much, half the 5 % point of chi-square with 2 degrees of freedom
+# (a likelihood-ratio test of the two factors): a flat evidence (Labyrinth: 1 nat over
+# 1/4 .. 4) keeps the configuration rather than a vertex placed by noise
+WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
 
 
 def wheel_noise_log_evidence(
@@ -1050,7 +1055,8 @@ def fit_wheel_noise(
     """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
     evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
     `motion_fit_error` times the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel
-    factors or when the graph is singular."""
+    factors, when the graph is singular, or when the configured noise is not rejected
+    (WHEEL_NOISE_TEST_NATS)."""
     if not wheel.k:
         return np.ones(2)
     graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
@@ -1088,6 +1094,8 @@ def fit_wheel_noise(
     except RuntimeError as exc:  # indeterminant linear system: keep the configured noise
         log.warning("batch wheel noise: not fitted (%s)", str(exc).splitlines()[0]
                     if str(exc) else "error")
+        return np.ones(2)
+    if seen[best] - seen[(0.0, 0.0)] <= WHEEL_NOISE_TEST_NATS:
         return np.ones(2)
     out = np.array(best)
     for j in range(2):  # the vertex of the parabola through the best three, per factor
