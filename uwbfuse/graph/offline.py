@@ -1005,7 +1005,10 @@ def _with_robust_ranges(
 # coordinate at a time, then the vertex of the parabola through each factor's best three
 # (docs/results.md, "Wheel noise from the log").
 WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
-WHEEL_NOISE_MAX_LOG2 = 4.0  # log2: factors within 1/16 .. 16 of the configured sigmas
+# log2: factors within 1 .. 16 of the configured sigmas. One-sided: the configured sigma
+# also stands for the odometry's correlated errors (scale, slip) that the white-noise
+# evidence cannot see, so the log may only loosen it, never tighten it
+WHEEL_NOISE_MAX_LOG2 = 4.0
 # log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
 # within a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors'
 # 1 mm / 1 mrad floor reached, or ranges that outweigh the odometry) it stays near 1
@@ -1086,7 +1089,7 @@ def fit_wheel_noise(
                     while True:
                         cand = list(best)
                         cand[j] += sign * WHEEL_NOISE_STEP
-                        if abs(cand[j]) > WHEEL_NOISE_MAX_LOG2 or \
+                        if not 0.0 <= cand[j] <= WHEEL_NOISE_MAX_LOG2 or \
                                 score((cand[0], cand[1])) <= seen[best]:
                             break
                         best = (cand[0], cand[1])
@@ -1108,5 +1111,6 @@ def fit_wheel_noise(
         curv = e0 - 2.0 * seen[best] + e2
         if curv < 0:
             out[j] += 0.5 * WHEEL_NOISE_STEP * (e0 - e2) / curv
+    out = np.clip(out, 0.0, WHEEL_NOISE_MAX_LOG2)
     log.debug("batch wheel noise: log2 factors %s -> %s (%d solves)", best, out, len(seen))
     return 2.0 ** out
