@@ -341,6 +341,8 @@ class GraphBuilder:
         self.wheel_records = WheelRecords(
             out_of_plane=(0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2))
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
+        # indices in `full_graph` of the external-pose factors (`pose_factor`)
+        self.pose_index: list[int] = []
         self.full_values = gtsam.Values() if record else None
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
         self.with_scale = self.g.estimate_range_scale is True
@@ -696,6 +698,8 @@ class GraphBuilder:
             for f in pose_factors(X(ka), p_p, q_p, c_p, self.delta(t_a, t_p, pose_a, vel_a),
                                   [self.motion_noise(t_a, int(t)) for t in t_p.tolist()],
                                   self.planar, self.cfg.pose):
+                if self.record and self.full_graph is not None:  # pushed by `_record`
+                    self.pose_index.append(self.full_graph.size() + inc.graph.size())
                 inc.graph.add(f)
         self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
         self._add_ranges(inc, ka, t_a, t_b, pose_a, vel_a)

@@ -733,7 +733,8 @@ class GraphEstimator(EstimatorBase):
             graph, initial, rec = self.batch_inputs()
             fac = offline.fit_wheel_noise(self.cfg, graph, initial, rec,
                                           b.scale if b.with_scale else None,
-                                          b.robust_sigma(), b.with_bias, b.wheel_records)
+                                          b.robust_sigma(), b.with_bias, b.wheel_records,
+                                          b.pose_index)
             self._wheel_noise = (float(fac[0]), float(fac[1]))
             b.complete_wheel_records(round(f * period), self._wheel_noise)
 

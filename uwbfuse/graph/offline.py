@@ -21,7 +21,7 @@ import copy
 import functools
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gtsam
@@ -1053,16 +1053,23 @@ def wheel_noise_log_evidence(
 def fit_wheel_noise(
     cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
     rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
-    wheel: WheelRecords,
+    wheel: WheelRecords, pose_index: Sequence[int] = (),
 ) -> np.ndarray:
     """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
     evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
     `motion_fit_error` times the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel
-    factors, when the graph is singular, or when the configured noise is not rejected
-    (WHEEL_NOISE_TEST_NATS)."""
-    if not wheel.k:
+    factors or ranges, when the graph is singular, or when the configured noise is not
+    rejected (WHEEL_NOISE_TEST_NATS).
+
+    The external-pose factors (`pose_index`, their indices in `base_graph`) are left out:
+    a localiser's wrong match is an offset held for seconds (the matcher locked onto the
+    wrong place), which a white-noise evidence explains as loose wheels. Without ranges
+    nothing absolute is left, so the configured noise stays."""
+    if not wheel.k or not len(rec["z"]):
         return np.ones(2)
     graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
+    for i in pose_index:
+        graph.remove(i)  # a null slot: every other factor keeps its index
     n_it = cfg.graph.lm_max_iterations
     seen: dict[tuple[float, float], float] = {}
     start = {"values": initial}
