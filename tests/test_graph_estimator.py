@@ -336,6 +336,29 @@ def test_batch_fits_the_wheel_time_offset():
     assert none == pytest.approx(0.0, abs=0.004)
 
 
+def test_wheel_time_offset_search_steps_past_its_edge(factory, monkeypatch):
+    """Test that the offset search goes on past +1 period while the edge scores best and
+    places the vertex between grid points: a motion-fit error (x - 2.3)^2 in periods."""
+    from uwbfuse.graph import offline
+    from uwbfuse.graph.builder import GraphBuilder
+
+    offsets: list[int] = []
+    complete = GraphBuilder.complete_wheel_records
+
+    def spy(self, offset_ns=0, noise_scale=(1.0, 1.0)):
+        offsets.append(offset_ns)
+        return complete(self, offset_ns, noise_scale)
+
+    period = float(np.median(np.diff(factory.log.wheel.t_ns)))
+    monkeypatch.setattr(GraphBuilder, "complete_wheel_records", spy)
+    monkeypatch.setattr(offline, "motion_fit_error",
+                        lambda *a, **k: (offsets[-1] / period - 2.3) ** 2)
+    cfg = Config()
+    cfg.graph = cfg.graph.model_copy(update={"estimate_wheel_noise": False})
+    found = estimate(factory.log, Method.BATCH, cfg).report["batch"]["wheel_time_offset_s"]
+    assert found * NS_PER_S / period == pytest.approx(2.3, abs=0.02)
+
+
 def test_batch_on_a_mostly_static_room_keeps_the_range_scale_off():
     """Test that the room-static log (20 s dwells; the graph starts at 54 s, once the tag has
     moved) does not take the start solve's 2.5 % range scale for the radios'.

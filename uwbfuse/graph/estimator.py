@@ -76,6 +76,9 @@ REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no long
 SMOOTHED_STAT_AGE_S = 2.0
 REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
 LIVE_LATENCY_KEPT = 10_000  # update latencies `forget_before` keeps (16 min at 10 Hz)
+# wheel sample periods: the farthest the batch time-offset search looks (a driver that
+# buffers stamps its samples a few periods late; farther is a clock fault, not an offset)
+WHEEL_OFFSET_MAX_PERIODS = 4.0
 # the report's key for the whole-graph solve of `finish` (see the module docstring)
 FULL_GRAPH_REPORT = {Method.BATCH: "batch", Method.ISAM2_SMOOTHED: "final_smoothing"}
 _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
@@ -700,7 +703,8 @@ class GraphEstimator(EstimatorBase):
         """The offline solve's wheel factors from the complete track
         (`complete_wheel_records`), at the wheel-to-range time offset that fits best: the
         maximum-likelihood one over -1 .. +1 wheel periods in half periods (which interval
-        a sample covers is what logs disagree on), each scored by the error after one Huber
+        a sample covers is what logs disagree on), stepping on past an edge while the edge
+        scores best (to WHEEL_OFFSET_MAX_PERIODS), each scored by the error after one Huber
         LM of the recorded graph with the ranges at the online robust sigma
         (`offline.motion_fit_error`); then, at that offset, the wheel noise of greatest
         evidence (`offline.fit_wheel_noise`, `graph.estimate_wheel_noise`)."""
@@ -710,23 +714,39 @@ class GraphEstimator(EstimatorBase):
             b.complete_wheel_records()
             return
         period = float(np.median(np.diff(self.wheel.t)))
-        steps = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
-        errs = np.empty(len(steps))
         graph, initial, _ = self.batch_inputs()  # the offset changes only factors and tags
-        for i, f in enumerate(steps.tolist()):
-            b.complete_wheel_records(round(f * period))
-            rec = b.records.arrays()
-            errs[i] = offline.motion_fit_error(self.cfg, graph, initial, rec,
-                                               b.scale if b.with_scale else None,
-                                               b.robust_sigma(), b.with_bias)
-        i = int(np.argmin(errs))
-        f = float(steps[i])
-        if 0 < i < len(steps) - 1:  # the vertex of the parabola through the best three
-            e0, e1, e2 = errs[i - 1], errs[i], errs[i + 1]
+        errs: dict[float, float] = {}
+
+        def score(f: float) -> float:
+            if f not in errs:
+                b.complete_wheel_records(round(f * period))
+                errs[f] = offline.motion_fit_error(self.cfg, graph, initial,
+                                                   b.records.arrays(),
+                                                   b.scale if b.with_scale else None,
+                                                   b.robust_sigma(), b.with_bias)
+            return errs[f]
+
+        for f in (-1.0, -0.5, 0.0, 0.5, 1.0):
+            score(f)
+        # while the best offset is the search's edge, step on past it
+        while True:
+            best = min(errs, key=errs.get)
+            lo, hi = min(errs), max(errs)
+            if best == hi and hi < WHEEL_OFFSET_MAX_PERIODS:
+                score(hi + 0.5)
+            elif best == lo and lo > -WHEEL_OFFSET_MAX_PERIODS:
+                score(lo - 0.5)
+            else:
+                break
+        f = best
+        if best - 0.5 in errs and best + 0.5 in errs:  # the parabola through the best three
+            e0, e1, e2 = errs[best - 0.5], errs[best], errs[best + 0.5]
             curv = e0 - 2.0 * e1 + e2
             if curv > 0:
                 f += 0.25 * (e0 - e2) / curv
-        log.debug("batch wheel time offset: errors %s at %s periods -> %.3f", errs, steps, f)
+        steps = sorted(errs)
+        log.debug("batch wheel time offset: errors %s at %s periods -> %.3f",
+                  [round(errs[x], 2) for x in steps], steps, f)
         self._wheel_offset_s = float(f * period / NS_PER_S)
         b.complete_wheel_records(round(f * period))
         if self.cfg.graph.estimate_wheel_noise:
