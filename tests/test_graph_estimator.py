@@ -352,7 +352,7 @@ def test_wheel_time_offset_search_steps_past_its_edge(factory, monkeypatch):
     period = float(np.median(np.diff(factory.log.wheel.t_ns)))
     monkeypatch.setattr(GraphBuilder, "complete_wheel_records", spy)
     monkeypatch.setattr(offline, "motion_fit_error",
-                        lambda *a, **k: (offsets[-1] / period - 2.3) ** 2)
+                        lambda *a, **k: ((offsets[-1] / period - 2.3) ** 2, a[2]))
     cfg = Config()
     cfg.graph = cfg.graph.model_copy(update={"estimate_wheel_noise": False})
     found = estimate(factory.log, Method.BATCH, cfg).report["batch"]["wheel_time_offset_s"]

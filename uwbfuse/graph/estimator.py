@@ -716,17 +716,19 @@ class GraphEstimator(EstimatorBase):
         period = float(np.median(np.diff(self.wheel.t)))
         graph, initial, _ = self.batch_inputs()  # the offset changes only factors and tags
         errs: dict[float, float] = {}
+        solved: dict[float, gtsam.Values] = {}
 
         def score(f: float) -> float:
-            if f not in errs:
+            if f not in errs:  # from the solution at the nearest offset scored (warm start)
+                near = min(solved, key=lambda x: abs(x - f), default=None)
                 b.complete_wheel_records(round(f * period))
-                errs[f] = offline.motion_fit_error(self.cfg, graph, initial,
-                                                   b.records.arrays(),
-                                                   b.scale if b.with_scale else None,
-                                                   b.robust_sigma(), b.with_bias)
+                errs[f], solved[f] = offline.motion_fit_error(
+                    self.cfg, graph, initial if near is None else solved[near],
+                    b.records.arrays(), b.scale if b.with_scale else None,
+                    b.robust_sigma(), b.with_bias)
             return errs[f]
 
-        for f in (-1.0, -0.5, 0.0, 0.5, 1.0):
+        for f in (0.0, 0.5, -0.5, 1.0, -1.0):
             score(f)
         # while the best offset is the search's edge, step on past it
         while True:
@@ -750,8 +752,8 @@ class GraphEstimator(EstimatorBase):
         self._wheel_offset_s = float(f * period / NS_PER_S)
         b.complete_wheel_records(round(f * period))
         if self.cfg.graph.estimate_wheel_noise:
-            graph, initial, rec = self.batch_inputs()
-            fac = offline.fit_wheel_noise(self.cfg, graph, initial, rec,
+            graph, _, rec = self.batch_inputs()  # from the motion fit at the best offset
+            fac = offline.fit_wheel_noise(self.cfg, graph, solved[best], rec,
                                           b.scale if b.with_scale else None,
                                           b.robust_sigma(), b.with_bias, b.wheel_records,
                                           b.pose_index)

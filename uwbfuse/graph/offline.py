@@ -971,13 +971,14 @@ def refit_scale(
 def motion_fit_error(
     cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
     rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
-) -> float:
+) -> tuple[float, gtsam.Values]:
     """Graph error after one Huber LM of `base_graph` plus every recorded range (scale
     corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
     `initial`: a negative log-likelihood (up to a constant) to compare motion factors
-    built differently by."""
+    built differently by; and the solution it is taken at (a start for the next)."""
     graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
-    return float(_run_lm(graph, initial, cfg.graph.lm_max_iterations).error())
+    opt = _run_lm(graph, initial, cfg.graph.lm_max_iterations)
+    return float(opt.error()), opt.values()
 
 
 def _with_robust_ranges(
