@@ -261,43 +261,15 @@ class ErrorStateEkf(StreamingFilter):
         noise: list[InnovationVariance] = []
         used = np.ones(nr, dtype=bool)
         if nr:
-            k = kidx[:nr]
-            rows = pre.rows[k]
-            if self.has_tag_lever:
-                tag_w = rs[k] @ self.tag_b
-                d = ps[k] + tag_w - self.anchor_pos[ra]
-            else:
-                d = ps[k] - self.anchor_pos[ra]
-            r_hat = np.sqrt(np.einsum("mi,mi->m", d, d))
-            u = d / np.maximum(r_hat, 1e-6)[:, None]
-            # h Phi(t_m) with h = [u, 0, (R t) x u, 0, 0] on the error state at t_m.
-            h = np.einsum("mi,mij->mj", u, rows[:, P_])
-            if self.has_tag_lever:
-                h += np.einsum("mi,mij->mj", cross(tag_w, u), rows[:, TH])
-            range_y = rr - r_hat
-            if self.n_bias:
-                h = pad_rows(h, self.n_x)
-                h[np.arange(nr), N_ERR + ra] = 1.0
-                range_y = range_y - self.rbias[ra]
-                if self.scale_state:
-                    h[:, -1] = r_hat
-                    range_y = range_y - self.rbias[-1] * r_hat
-            range_h = h
+            range_h, range_y = self._range_rows(rs[kidx[:nr]], ps[kidx[:nr]],
+                                                pre.rows[kidx[:nr]], ra, rr)
             self.short = range_y < 0.0
-        nw = len(wt)
-        if nw:
+        if len(wt):
             k = kidx[nr:]
-            rt_ = np.swapaxes(rs[k], 1, 2)          # R^T at each wheel stamp
-            vm = vs[k]
-            rows = pre.rows[k]
-            # h Phi(t_m) with h = [0, R^T, R^T [v]x, 0, 0] on the error state at t_m.
-            h = rt_ @ (rows[:, V_] + skew(vm) @ rows[:, TH])
-            z = np.zeros((nw, 3))
-            z[:, 0] = wv
-            h = h.reshape(3 * nw, N_ERR)
-            hs.append(pad_rows(h, self.n_x) if self.n_bias else h)
-            ys.append((z - np.einsum("mij,mj->mi", rt_, vm)).reshape(-1))
-            rv.append(np.tile(self.wheel_noise.r, nw))
+            h, y = self._wheel_rows(rs[k], vs[k], pre.rows[k], wv)
+            hs.append(h)
+            ys.append(y)
+            rv.append(np.tile(self.wheel_noise.r, len(wt)))
             noise.append(self.wheel_noise)
         if self.planar:  # soft planar constraint (height z0, level) at the window start
             ux, uy, uz = self.R[:, 2].tolist()
@@ -339,6 +311,47 @@ class ErrorStateEkf(StreamingFilter):
         if dx0 is not None:
             self._inject(phi @ dx0[:N_ERR])
         return used
+
+    def _range_rows(self, r_m: F64, p_m: F64, rows: F64, ra: np.ndarray, rr: np.ndarray
+                    ) -> tuple[F64, F64]:
+        """Range rows of `_window`: h Phi(t_m) (m, n_x) and innovations (m,) m, from the
+        nominal attitude r_m (m,3,3), position p_m (m,3) m (map frame) and prefix
+        transition rows (m, N_ERR, N_ERR) at each range's stamp."""
+        nr = len(rr)
+        if self.has_tag_lever:
+            tag_w = r_m @ self.tag_b
+            d = p_m + tag_w - self.anchor_pos[ra]
+        else:
+            d = p_m - self.anchor_pos[ra]
+        r_hat = np.sqrt(np.einsum("mi,mi->m", d, d))
+        u = d / np.maximum(r_hat, 1e-6)[:, None]
+        # h Phi(t_m) with h = [u, 0, (R t) x u, 0, 0] on the error state at t_m.
+        h = np.einsum("mi,mij->mj", u, rows[:, P_])
+        if self.has_tag_lever:
+            h += np.einsum("mi,mij->mj", cross(tag_w, u), rows[:, TH])
+        range_y = rr - r_hat
+        if self.n_bias:
+            h = pad_rows(h, self.n_x)
+            h[np.arange(nr), N_ERR + ra] = 1.0
+            range_y = range_y - self.rbias[ra]
+            if self.scale_state:
+                h[:, -1] = r_hat
+                range_y = range_y - self.rbias[-1] * r_hat
+        return h, range_y
+
+    def _wheel_rows(self, r_m: F64, v_m: F64, rows: F64, wv: np.ndarray
+                    ) -> tuple[F64, F64]:
+        """Wheel-speed rows of `_window`: h Phi(t_m) (3m, n_x) and innovations (3m,) m/s
+        of the body velocity (v, 0, 0), from the nominal attitude r_m (m,3,3) and velocity
+        v_m (m,3) m/s (map frame) at each wheel stamp."""
+        nw = len(wv)
+        rt_ = np.swapaxes(r_m, 1, 2)          # R^T at each wheel stamp
+        # h Phi(t_m) with h = [0, R^T, R^T [v]x, 0, 0] on the error state at t_m.
+        h = (rt_ @ (rows[:, V_] + skew(v_m) @ rows[:, TH])).reshape(3 * nw, N_ERR)
+        z = np.zeros((nw, 3))
+        z[:, 0] = wv
+        return (pad_rows(h, self.n_x) if self.n_bias else h,
+                (z - np.einsum("mij,mj->mi", rt_, v_m)).reshape(-1))
 
     def _pose_update(self, position: F64, quat_xyzw: F64, covariance: F64) -> bool:
         """External pose at t_cur (`filters.pose_update`): x, y (z when not planar) and

@@ -25,9 +25,16 @@ from numpy.typing import NDArray
 
 from uwbfuse.config import MapConfig
 from uwbfuse.errors import SimulationError
-from uwbfuse.sim.lidar import lidar_poses
+from uwbfuse.sim.lidar import LidarPoses, lidar_poses
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
-from uwbfuse.sim.sensors import imu_samples, uwb_ranges, wheel_samples
+from uwbfuse.sim.sensors import (
+    ImuSamples,
+    RangeSamples,
+    WheelSamples,
+    imu_samples,
+    uwb_ranges,
+    wheel_samples,
+)
 from uwbfuse.sim.signal import signal_powers
 from uwbfuse.sim.trajectory import MotionParams, Timeline, build_timeline, evaluate
 from uwbfuse.streams import (
@@ -191,26 +198,10 @@ def simulate_with_truth(
                                for s in np.random.SeedSequence(seed).spawn(5)[3:])
         lidar = lidar_poses(sc, tl, duration_s, pose_rng, wrong_rng)
 
-    anchors = AnchorMap.from_dict(sc.anchor_dict())
-    sensor_log = SensorLog(
-        imu=ImuStream(t_imu_ns, imu.gyro, imu.accel) if "imu" in sc.streams else None,
-        wheel=WheelStream(_to_ns(sc.t0_ns, t_wh), wh.v, wh.omega)
-        if "wheel" in sc.streams else None,
-        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range,
-                           *((rx_dbm, fp_dbm) if sc.signal_quality else (None, None)))
-        if "uwb" in sc.streams else None,
-        anchors=anchors,
-        ground_truth=PoseStream(t_imu_ns, pos, quat, True),
-        source=f"simulated:{sc.name}:seed={seed}",
-        map=site_map(sc),
-        pose=None if lidar is None else PoseStream(
-            _to_ns(sc.t0_ns, lidar.t_s), lidar.position, lidar.quat_xyzw, True,
-            lidar.covariance),
-    )
-    stills = _still_intervals(tl, duration_s)
-    stills_ns = tuple((int(_to_ns(sc.t0_ns, np.array([a]))[0]),
-                       int(_to_ns(sc.t0_ns, np.array([b]))[0])) for a, b in stills)
-    standstill = stills_ns[0] if stills and stills[0][0] == 0.0 and sc.still_start_s > 0 else None
+    sensor_log = _sensor_log(sc, seed, t_imu_ns, imu, _to_ns(sc.t0_ns, t_wh), wh, rs,
+                             (rx_dbm, fp_dbm), lidar,
+                             PoseStream(t_imu_ns, pos, quat, True))
+    stills_ns, standstill = _still_stamps(sc, tl, duration_s)
     log.debug(
         "simulated %s: %.1f s, %d imu, %d wheel, %d ranges (%d NLOS)",
         sc.name, duration_s, n_imu, n_wh, len(rs.t_s), int(rs.nlos.sum()),
@@ -242,6 +233,38 @@ def simulate_with_truth(
         fp_dbm=fp_dbm,
         pose_wrong=None if lidar is None else lidar.wrong,
     )
+
+
+def _sensor_log(sc: Scenario, seed: int, t_imu_ns: np.ndarray, imu: ImuSamples,
+                t_wh_ns: np.ndarray, wh: WheelSamples, rs: RangeSamples,
+                powers: tuple[np.ndarray, np.ndarray], lidar: LidarPoses | None,
+                truth: PoseStream) -> SensorLog:
+    """The contract's streams of one simulation (those in `sc.streams`), stamps in ns."""
+    rx_dbm, fp_dbm = powers
+    return SensorLog(
+        imu=ImuStream(t_imu_ns, imu.gyro, imu.accel) if "imu" in sc.streams else None,
+        wheel=WheelStream(t_wh_ns, wh.v, wh.omega) if "wheel" in sc.streams else None,
+        ranges=RangeStream(_to_ns(sc.t0_ns, rs.t_s), rs.anchor, rs.range,
+                           *((rx_dbm, fp_dbm) if sc.signal_quality else (None, None)))
+        if "uwb" in sc.streams else None,
+        anchors=AnchorMap.from_dict(sc.anchor_dict()),
+        ground_truth=truth,
+        source=f"simulated:{sc.name}:seed={seed}",
+        map=site_map(sc),
+        pose=None if lidar is None else PoseStream(
+            _to_ns(sc.t0_ns, lidar.t_s), lidar.position, lidar.quat_xyzw, True,
+            lidar.covariance),
+    )
+
+
+def _still_stamps(sc: Scenario, tl: Timeline, duration_s: float
+                  ) -> tuple[tuple[tuple[int, int], ...], tuple[int, int] | None]:
+    """The still intervals (ns) and the standstill at the start, if the scenario has one."""
+    stills = _still_intervals(tl, duration_s)
+    stills_ns = tuple((int(_to_ns(sc.t0_ns, np.array([a]))[0]),
+                       int(_to_ns(sc.t0_ns, np.array([b]))[0])) for a, b in stills)
+    standstill = stills_ns[0] if stills and stills[0][0] == 0.0 and sc.still_start_s > 0 else None
+    return stills_ns, standstill
 
 
 def simulate(
