@@ -407,3 +407,28 @@ def test_motion_prior_densities_set_how_smooth_a_uwb_only_track_is():
     assert roughness(smooth) < 0.8 * roughness(loose)
     steady, turning = run(1.0, 0.01), run(1.0, 2.0)
     assert heading_spread(steady) < 0.8 * heading_spread(turning)
+
+
+@pytest.mark.parametrize(("peak_log2", "expected"), [(2.0, 4.0), (None, 1.0)],
+                         ids=["peak-at-4x", "rising-to-the-edge"])
+def test_wheel_noise_fit_keeps_the_configured_noise_at_its_edge(monkeypatch, peak_log2,
+                                                                expected):
+    """Test that the wheel noise search finds an evidence peak inside its range (4x, log2
+    2) and keeps the configured noise where the evidence still rises at its 16x edge (a
+    misfit of another model, not odometry noise)."""
+    from uwbfuse.graph import offline
+    from uwbfuse.graph.builder import WheelRecords
+
+    def evidence(graph, initial, wheel, factors, max_iterations):
+        u = np.log2(factors[0])
+        ev = 50.0 * u if peak_log2 is None else -50.0 * (u - peak_log2) ** 2
+        return ev - 50.0 * np.log2(factors[1]) ** 2, initial
+
+    monkeypatch.setattr(offline, "wheel_noise_log_evidence", evidence)
+    rec = {"k": np.array([0]), "anchor": np.array([0]), "z": np.array([5.0]),
+           "tag_in_kf": np.zeros((1, 3))}
+    wheel = WheelRecords(k=[0], delta=[np.zeros(3)], cov=[np.eye(3) * 1e-4], index=[0])
+    fac = offline.fit_wheel_noise(Config(), gtsam.NonlinearFactorGraph(), gtsam.Values(),
+                                  rec, None, 0.1, False, wheel)
+    assert fac[0] == pytest.approx(expected, rel=0.05)
+    assert fac[1] == pytest.approx(1.0)
