@@ -172,14 +172,23 @@ class _WheelScale:
             return False
         sv, sw = (float(x) for x in self.scale)
         c = np.array([sv, sv, sw])
-        for k, d, cov, idx in zip(self.k.tolist(), self.delta, self.cov, self.index.tolist(),
-                                  strict=True):
-            f = between_factor(X(k), X(k + 1), d * c, cov * np.outer(c, c),
-                               self.out_of_plane, WHEEL_HUBER_K)
-            for graph in graphs:
-                graph.replace(idx, f)
+        replace_wheel_factors(graphs, self.k.tolist(), [d * c for d in self.delta],
+                              [cov * np.outer(c, c) for cov in self.cov],
+                              self.index.tolist(), self.out_of_plane)
         self.applied = self.scale.copy()
         return True
+
+
+def replace_wheel_factors(
+    graphs: list[gtsam.NonlinearFactorGraph], k: list[int], delta: list[np.ndarray],
+    cov: list[np.ndarray], index: list[int], out_of_plane: tuple[float, float, float],
+) -> None:
+    """Replace, in each of `graphs`, factor `index[i]` by the wheel factor X(k) -> X(k + 1)
+    of planar delta[i] (x m, y m, theta rad) and covariance cov[i] (3x3)."""
+    for kk, d, c, idx in zip(k, delta, cov, index, strict=True):
+        f = between_factor(X(kk), X(kk + 1), d, c, out_of_plane, WHEEL_HUBER_K)
+        for graph in graphs:
+            graph.replace(idx, f)
 
 
 def keyframe_arrays(values: gtsam.Values, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
@@ -1002,7 +1011,7 @@ def _with_robust_ranges(
 # (`wheel.sigma_v`, `wheel.sigma_omega`) are a guess; batch scales the translation and the
 # heading parts of every wheel factor's covariance by the factors (f_v, f_omega) that
 # maximise the Laplace evidence of the motion-fit graph (`motion_fit_error`'s). The search
-# runs on a grid of WHEEL_NOISE_STEP (log2) steps within +-WHEEL_NOISE_MAX_LOG2, one
+# runs on a grid of WHEEL_NOISE_STEP (log2) steps within 0 .. WHEEL_NOISE_MAX_LOG2, one
 # coordinate at a time, then the vertex of the parabola through each factor's best three
 # (docs/results.md, "Wheel noise from the log").
 WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
@@ -1010,8 +1019,8 @@ WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
 # also stands for the odometry's correlated errors (scale, slip) that the white-noise
 # evidence cannot see, so the log may only loosen it, never tighten it. An evidence still
 # rising at 16x is no odometry noise (encoders that far off the configuration are not
-# odometry) but another model's misfit the wheels are loosened to absorb (ranges read
-# 7 % long with the range scale off: Plaza2 0.53 -> 1.57 m): the fit then keeps 1
+# odometry) but another model's misfit the wheels are loosened to absorb (e.g. ranges
+# read long with the range scale off; docs/results.md): the fit then keeps 1
 WHEEL_NOISE_MAX_LOG2 = 4.0
 # log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
 # within a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors'
@@ -1042,13 +1051,11 @@ def wheel_noise_log_evidence(
     Huber kernels enter through their loss and their weights at x*."""
     fv, fw = factors
     c = np.array([fv, fv, fw])
-    half_logdet_cov = 0.0
-    for k, d, cov, idx in zip(wheel.k, wheel.delta, wheel.cov, wheel.index, strict=True):
-        cs = cov * np.outer(c, c)
-        cov6 = planar_covariance6(cs, wheel.out_of_plane)
-        half_logdet_cov += 0.5 * float(np.linalg.slogdet(cov6)[1])
-        graph.replace(idx, between_factor(X(k), X(k + 1), d, cs, wheel.out_of_plane,
-                                          WHEEL_HUBER_K))
+    scaled = [cov * np.outer(c, c) for cov in wheel.cov]
+    half_logdet_cov = sum(0.5 * float(np.linalg.slogdet(planar_covariance6(
+        cs, wheel.out_of_plane))[1]) for cs in scaled)
+    replace_wheel_factors([graph], wheel.k, wheel.delta, scaled, wheel.index,
+                          wheel.out_of_plane)
     values = _run_lm(graph, initial, max_iterations).values()
     half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
     return -graph.error(values) - half_logdet_cov - half_logdet_h, values
