@@ -266,19 +266,8 @@ def _cmd_collisions(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The command line: one declaration per subcommand and option (long because it is a
-    table; each subcommand's behaviour lives in its own module)."""
-    p = argparse.ArgumentParser(
-        prog="uwbfuse",
-        description="Factor-graph localisation from IMU, wheel odometry and UWB ranges.",
-        epilog=EXAMPLES,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
-    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_simulate(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse simulate`: write a simulated contract log."""
     s = sub.add_parser("simulate", help="write a simulated contract log (MCAP)")
     s.add_argument("out", metavar="OUT.mcap", help="MCAP log to write")
     s.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
@@ -289,6 +278,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(uwbfuse_msgs/msg/UwbRange), named in the log's uwb_fields metadata")
     s.set_defaults(func=_cmd_simulate)
 
+
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse run`: estimate one log with one method."""
     r = sub.add_parser("run", help="estimate a trajectory from a log")
     r.add_argument("log", metavar="LOG", help=".mcap file or rosbag2 directory")
     r.add_argument("--method", required=True, help=METHOD_HELP)
@@ -305,6 +297,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=PROGRESS_HELP)
     r.set_defaults(func=_cmd_run)
 
+
+def _add_eval(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse eval`: score a TUM trajectory against ground truth."""
     e = sub.add_parser("eval", help="score a TUM trajectory against ground truth")
     e.add_argument("est", metavar="EST.tum", nargs="?",
                    help="estimated trajectory (optional with --save-gt)")
@@ -319,6 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--json", metavar="FILE", help="also write the metrics as JSON")
     e.set_defaults(func=_cmd_eval)
 
+
+def _add_compare(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse compare`: several methods on one log, table and plots."""
     c = sub.add_parser("compare", help="run several methods on one log: table and plots")
     c.add_argument("log", metavar="LOG", help=".mcap file or rosbag2 directory")
     c.add_argument("--methods", default="isam2,batch,ekf,ukf,wls,imu,odom",
@@ -335,6 +333,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=PROGRESS_HELP)
     c.set_defaults(func=_cmd_compare)
 
+
+def _add_montecarlo(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse montecarlo`: simulated runs over seeds."""
     m = sub.add_parser("montecarlo", help="repeat simulated runs over seeds")
     m.add_argument("--scenario", default="warehouse", help="room | warehouse | factory | ...")
     m.add_argument("--runs", type=int, default=20, help="simulated runs (seeds 0..N-1)")
@@ -347,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     m.set_defaults(func=_cmd_montecarlo)
 
+
+def _add_batch(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse batch`: one method over many logs."""
     b = sub.add_parser("batch", help="run one method over many logs")
     b.add_argument("logs", nargs="+", metavar="LOG", help=".mcap files or rosbag2 directories")
     b.add_argument("--method", required=True, help=METHOD_HELP)
@@ -358,6 +362,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--dashboard", action="store_true", help=DASHBOARD_HELP)
     b.set_defaults(func=_cmd_batch)
 
+
+def _add_calibrate_nlos(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse calibrate-nlos`: fit the LOS/NLOS range-error model."""
     n = sub.add_parser(
         "calibrate-nlos",
         help="fit the per-range LOS/NLOS range-error model (Qiu 2022 eq. 8-9) for [nlos]",
@@ -368,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("-o", "--output", metavar="OUT.toml", help="default: stdout")
     n.set_defaults(func=_cmd_calibrate_nlos)
 
+
+def _add_train_nlos(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse train-nlos`: train the NLOS random forest."""
     tn = sub.add_parser(
         "train-nlos", help="train the NLOS random-forest classifier for [nlos] classifier",
         description="Label every range LOS or NLOS from ground truth (|measured - true "
@@ -390,6 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     tn.add_argument("--seed", type=int, default=0, help="forest random seed")
     tn.set_defaults(func=_cmd_train_nlos)
 
+
+def _add_collisions(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse collisions`: predict collisions among vehicles and with the map."""
     k = sub.add_parser(
         "collisions", help="predict collisions of vehicles with the map and each other",
         description="Predict each vehicle's footprint over [t, t + control_delay] (constant "
@@ -409,8 +422,28 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--workers", type=int, metavar="N", help=WORKERS_HELP)
     k.set_defaults(func=_cmd_collisions)
 
+
+def _add_dump_config(sub: argparse._SubParsersAction) -> None:
+    """`uwbfuse dump-config`: print the default configuration."""
     d = sub.add_parser("dump-config", help="print the default configuration (TOML, units)")
     d.set_defaults(func=_cmd_dump_config)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line: the global options, then each subcommand's (`_add_<command>`);
+    each subcommand's behaviour lives in its own module."""
+    p = argparse.ArgumentParser(
+        prog="uwbfuse",
+        description="Factor-graph localisation from IMU, wheel odometry and UWB ranges.",
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress to stderr")
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_simulate, _add_run, _add_eval, _add_compare, _add_montecarlo, _add_batch,
+                _add_calibrate_nlos, _add_train_nlos, _add_collisions, _add_dump_config):
+        add(sub)
     for sp in sub.choices.values():
         sp.formatter_class = _HelpFormatter
     return p
