@@ -727,16 +727,14 @@ class Initialiser:
         return _Track(d0, rq, vq, not v0_known, sens, np.array(sigmas))
 
     # ------------------------------------------------------------------ heading
-    def _solve_heading(
-        self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple, r_level: F64,
-        gyro_bias: F64, accel_bias: F64, still_ok: bool, motion_start: int | None,
-        at_rest: bool = True,
-    ) -> InitialState | None:
-        assert self.anchors is not None
-        cfg = self.config.init
+    def _heading_window(self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple,
+                        motion_start: int | None) -> tuple[int, int, float, bool]:
+        """The heading solve's window at `t_ns`: the first sample's time (ns), the window's
+        start (ns), its longest length (s), and whether the velocity at its start is known
+        (zero: the window starts where the motion did)."""
         t_first = min(int(c[0][0]) for c in (imu, wheel, rng) if c)
         w_start = motion_start if motion_start is not None else t_first
-        max_win = cfg.max_window
+        max_win = self.config.init.max_window
         if not self.has_wheel:
             # Strapdown drifts (bias, tilt): IMU-only tracks use a shorter window.
             max_win = min(max_win, _IMU_WINDOW_S)
@@ -746,6 +744,42 @@ class Initialiser:
         # velocity, took the start 2 m and a 7 % range scale off)
         w_start = max([w_start] + [int(c[0][0]) for c in (imu, wheel) if c])
         v0_known = motion_start is not None and w_start == motion_start
+        return t_first, w_start, max_win, v0_known
+
+    def _heading_prior(
+        self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple, r_level: F64,
+        gyro_bias: F64, accel_bias: F64, still_ok: bool, motion_start: int | None,
+        t_first: int, w_start: int, v0_known: bool, lev0: F64,
+    ) -> tuple[tuple[F64, float] | None, F64]:
+        """The static fix (tag position prior, map frame) that holds the heading solve's
+        window, if any, and the lever arm (m, window frame W') at the time it holds: the
+        standstill before the motion, or a later standstill that ended inside the window."""
+        prior = None
+        if motion_start is not None and v0_known:
+            prior = self._static_fix(rng, t_first, motion_start)
+        elif self.has_wheel:
+            # a later standstill that ended inside the window: its fix holds the tag where
+            # the track has it at the standstill's end (room-static: a 20 s stop ends 1 s
+            # into the window; without it the solve's position was 0.25-0.34 m off)
+            last = _last_standstill(wheel, w_start, t_ns, self.config.init.standstill_window)
+            if last is not None:
+                prior = self._static_fix(rng, *last)
+                if prior is not None:
+                    ts0 = w_start / NS_PER_S
+                    at = self._track(imu, wheel, r_level, gyro_bias, accel_bias, ts0,
+                                     np.array([ts0, last[1] / NS_PER_S]), v0_known, still_ok)
+                    lev0 = at.d[1] + at.rot[1] @ self.lever
+        return prior, lev0
+
+    def _solve_heading(
+        self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple, r_level: F64,
+        gyro_bias: F64, accel_bias: F64, still_ok: bool, motion_start: int | None,
+        at_rest: bool = True,
+    ) -> InitialState | None:
+        assert self.anchors is not None
+        cfg = self.config.init
+        t_first, w_start, max_win, v0_known = self._heading_window(t_ns, imu, wheel, rng,
+                                                                   motion_start)
         tf, pf, okf = self._fixes(rng, w_start)
         pf, tf = pf[okf], tf[okf]
         if len(pf) < 4:
@@ -777,20 +811,9 @@ class Initialiser:
         dtr = tr - ts0
         anc = self.anchors.positions[ar]
         sig = self._range_sigma()
-        prior = None
-        if motion_start is not None and v0_known:
-            prior = self._static_fix(rng, t_first, motion_start)
-        elif self.has_wheel:
-            # a later standstill that ended inside the window: its fix holds the tag where
-            # the track has it at the standstill's end (room-static: a 20 s stop ends 1 s
-            # into the window; without it the solve's position was 0.25-0.34 m off)
-            last = _last_standstill(wheel, w_start, t_ns, cfg.standstill_window)
-            if last is not None:
-                prior = self._static_fix(rng, *last)
-                if prior is not None:
-                    at = self._track(imu, wheel, r_level, gyro_bias, accel_bias, ts0,
-                                     np.array([ts0, last[1] / NS_PER_S]), v0_known, still_ok)
-                    lev0 = at.d[1] + at.rot[1] @ self.lever
+        prior, lev0 = self._heading_prior(t_ns, imu, wheel, rng, r_level, gyro_bias,
+                                          accel_bias, still_ok, motion_start, t_first,
+                                          w_start, v0_known, lev0)
         solve_v = trk.free_velocity
         # Per-anchor range biases (slow NLOS, antenna delay) over the window.
         anc_ids, anc_col = np.unique(ar, return_inverse=True)
@@ -814,21 +837,7 @@ class Initialiser:
             z_sigma=z_sigma, solve_v=solve_v, n_k=n_k, n_s=n_s, n_b=n_b)
         i_v, n_unk = problem.i_v, problem.n
 
-        tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
-        v_seed = np.zeros(3)
-        if solve_v and len(tf) >= 2:
-            k = min(len(tf), 10)
-            span = tf[k - 1] - tf[0]
-            if span > 0:
-                v_seed = (pf[k - 1] - pf[0]) / span
-        seeds = []
-        for yaw_s in np.linspace(-np.pi, np.pi, _N_SEEDS, endpoint=False):
-            x0 = np.zeros(n_unk)
-            x0[:3] = tag_seed - rot_z(yaw_s) @ lev0
-            x0[3] = yaw_s
-            if solve_v:
-                x0[i_v:i_v + 3] = v_seed
-            seeds.append(x0)
+        seeds = _heading_seeds(prior, tf, pf, lev0, solve_v, n_unk, i_v)
         sols = solve_seeds(problem, seeds)
         if not sols:
             self.last_reason = "heading solve failed"
@@ -1085,6 +1094,29 @@ def accept_start(
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
         return StartVerdict(state, consistent, False, reason)
     return StartVerdict(state, consistent, True, "initialised")
+
+
+def _heading_seeds(prior: tuple[F64, float] | None, tf: F64, pf: F64, lev0: F64, solve_v: bool,
+                   n_unk: int, i_v: int) -> list[F64]:
+    """The heading solve's start points: _N_SEEDS headings evenly around the circle, the
+    base placed so the tag sits at the prior fix (else the first fixes' median, map
+    frame m), and the velocity (when solved) from the first fixes' displacement."""
+    tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
+    v_seed = np.zeros(3)
+    if solve_v and len(tf) >= 2:
+        k = min(len(tf), 10)
+        span = tf[k - 1] - tf[0]
+        if span > 0:
+            v_seed = (pf[k - 1] - pf[0]) / span
+    seeds = []
+    for yaw_s in np.linspace(-np.pi, np.pi, _N_SEEDS, endpoint=False):
+        x0 = np.zeros(n_unk)
+        x0[:3] = tag_seed - rot_z(yaw_s) @ lev0
+        x0[3] = yaw_s
+        if solve_v:
+            x0[i_v:i_v + 3] = v_seed
+        seeds.append(x0)
+    return seeds
 
 
 def _last_standstill(wheel: tuple, w_start: int, t_ns: int,
