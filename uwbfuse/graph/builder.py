@@ -272,8 +272,8 @@ class GraphBuilder:
         record: bool,
         seeding: bool | None = None,
     ) -> None:
-        """Declares the builder's whole state (long because every attribute the smoother
-        reads is set here once rather than scattered over methods)."""
+        """Declares the builder's state, group by group (`_init_*`); every attribute the
+        smoother reads is set here once."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
@@ -292,14 +292,40 @@ class GraphBuilder:
         self.tag = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
-        self.mixture = NlosModel.from_config(config)
+        self.z0 = planar_height(anchors, float(start.position[2]))
+        self._init_nlos_state()
+        self.pim_params = self._preintegration_params()
+        self._init_estimate(start)
+        self._init_pending()
+        self._init_records(record, seeding)
+        self._init_range_scale(start)
+        self._init_online_choice()
+
+    def _preintegration_params(self) -> gtsam.PreintegrationCombinedParams | None:
+        """The IMU factors' preintegration parameters: the constant-velocity prior's virtual
+        IMU without IMU and wheels, the configured (inflated) IMU noise with an IMU, else
+        None (wheels only)."""
+        if self.cv_motion:
+            return imu_mod.motion_prior_params(self.g.motion_accel_density,
+                                               self.g.motion_turn_density,
+                                               self.cfg.imu.gravity)
+        if self.has_imu:
+            return imu_mod.preintegration_params(
+                self.cfg.imu, self.cfg.extrinsics,
+                imu_inflation(self.g.imu_noise_inflation, self.has_wheel))
+        return None
+
+    def _init_nlos_state(self) -> None:
+        """The NLOS model and each anchor's online NLOS state (the newest excess state's
+        segment, estimate and stamp)."""
+        self.mixture = NlosModel.from_config(self.cfg)
         self.mixture_prior = copy.copy(self.mixture)
         # LOS sigma of the range factors, from residuals at the smoothed estimate (the
         # mixture's is the one-step prediction's, wider by the prediction error)
         self.smoothed_sigma_los: float | None = None
         self.smoothed_robust_sigma: float | None = None  # the same over all ranges, uncapped
         self._smoothed_window = ResidualWindow()
-        m = len(anchors)
+        m = len(self.anchors)
         self.anchor_p = np.full(m, self.mixture.p_nlos)
         self.range_bias = np.zeros(m)
         self.seg_ns = round(self.mixture.segment_s * NS_PER_S)
@@ -308,23 +334,18 @@ class GraphBuilder:
         self.e_stamp = np.zeros(m)  # its smoother timestamp (s since t0)
         self.e_created: set[tuple[int, int]] = set()  # NLOS states in the current smoother
         self.review = True  # delayed re-classification of ranges (online)
-        self.z0 = planar_height(anchors, float(start.position[2]))
-        if self.cv_motion:
-            self.pim_params: gtsam.PreintegrationCombinedParams | None = (
-                imu_mod.motion_prior_params(self.g.motion_accel_density,
-                                            self.g.motion_turn_density, config.imu.gravity))
-        elif self.has_imu:
-            self.pim_params = imu_mod.preintegration_params(
-                config.imu, config.extrinsics,
-                imu_inflation(self.g.imu_noise_inflation, self.has_wheel))
-        else:
-            self.pim_params = None
-        # current estimate of the newest keyframe (updated by the smoother)
+
+    def _init_estimate(self, start: Any) -> None:
+        """The newest keyframe's estimate (map frame), from the start; the smoother updates it."""
         self.pose = gtsam.Pose3(gtsam.Rot3(np.asarray(start.R_map_base, dtype=np.float64)),
                                 np.asarray(start.position, dtype=np.float64))
         self.vel = np.asarray(start.velocity, dtype=np.float64).copy()
         self.bias = gtsam.imuBias.ConstantBias(np.asarray(start.accel_bias, dtype=np.float64),
                                                np.asarray(start.gyro_bias, dtype=np.float64))
+
+    def _init_pending(self) -> None:
+        """The queues of data waiting for the keyframes to come: ranges, their classifier
+        priors, external poses."""
         self._rt: list[np.ndarray] = []  # pending ranges: (t, anchor, z) chunks
         self._ra: list[np.ndarray] = []
         self._rz: list[np.ndarray] = []
@@ -332,6 +353,9 @@ class GraphBuilder:
         # the learned NLOS classifier's P(NLOS) per range (`use_range_priors`), or None
         self.priors: RangePriors | None = None
         self.poses = PoseQueue(self.t0)  # external poses for the keyframes to come
+
+    def _init_records(self, record: bool, seeding: bool | None) -> None:
+        """What the online pass records for isam2-smoothed and batch (`record`: the whole graph)."""
         self.record = record
         # the online pass only seeds batch (default: whenever the graph is recorded): its
         # anchor offsets keep the configured prior (see `first`)
@@ -344,11 +368,16 @@ class GraphBuilder:
         # indices in `full_graph` of the external-pose factors (`pose_factor`)
         self.pose_index: list[int] = []
         self.full_values = gtsam.Values() if record else None
+
+    def _init_range_scale(self, start: Any) -> None:
+        """The per-anchor range scale errors and whether they are estimated (`auto`: from
+        the start solve's common scale)."""
+        m = len(self.anchors)
         self.scale = np.zeros(m)  # per-anchor range scale error k: z = (1 + k) d + b
         self.with_scale = self.g.estimate_range_scale is True
         start_k = float(getattr(start, "range_scale", 1.0)) - 1.0
         if self.g.estimate_range_scale == "auto" and range_scale_applies(
-                start_k, anchors, np.asarray(start.position)):
+                start_k, self.anchors, np.asarray(start.position)):
             # The start solve fits one common scale with the pose; residuals after the
             # fact cannot show it (the trajectory absorbs a scale error), so `auto` decides
             # here, as the filters do.
@@ -361,6 +390,11 @@ class GraphBuilder:
         self._sc_num = np.zeros(m)
         self._sc_den = np.zeros(m)
         self._sc_n = np.zeros(m)
+
+    def _init_online_choice(self) -> None:
+        """Range bookkeeping (dropped, repeated, jumps) and the online range-model choice's
+        prequential scores."""
+        m = len(self.anchors)
         self.dropped_ranges = 0
         self.repeated_ranges = 0
         self._last_range: dict[int, tuple[int, float]] = {}
