@@ -727,140 +727,186 @@ def _solve_em(
     common_scale: bool = False,
 ) -> BatchResult:
     """One EM + LM run from the online trajectory, or NLOS-first (see `solve`);
-    `common_scale`: the range scale (when estimated) is one for every anchor.
+    `common_scale`: the range scale (when estimated) is one for every anchor. Its phases
+    (`_EmRun`): the NLOS-first round, the EM rounds, the scale settling, the LOS offsets'
+    release and the wheel-scale round."""
+    run = _EmRun(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
+                 nlos_first, wheel_scale, common_scale)
+    if nlos_first and run.states is not None:
+        run.nlos_first_round()
+    run.em_rounds()
+    run.settle()
+    return run.result()
 
-    Long (about 150 lines) because the EM rounds, the scale settling, the LOS offsets'
-    release and the wheel-scale round share the run's state (values, responsibilities,
-    scales); its graphs (`_EmGraphs`), E-step (`_smooth_per_anchor`) and marginals
-    (`_em_marginals`) live apart."""
-    g_cfg = cfg.graph
-    uwb = cfg.uwb
-    if wheel_scale is not None:  # its wheel factors are replaced: keep the caller's intact
-        base_graph = gtsam.NonlinearFactorGraph(base_graph)
-    with_scale = scale0 is not None  # range scales are estimated (decided online, `auto`)
-    scale = np.zeros(len(anchors)) if scale0 is None else scale0.copy()
-    z_raw = rec["z"]
-    rec = dict(rec)
-    rec["z"] = z_raw / (1.0 + scale[rec["anchor"]])
-    with_bias = g_cfg.estimate_range_bias
-    prior = NlosModel.from_config(cfg)
-    mix = copy.copy(model)
-    values = gtsam.Values(initial)
-    n_anchor = len(anchors)
-    a_r = rec["anchor"].astype(np.int64)
-    seg_ns = round(mix.segment_s * NS_PER_S)
-    seg_r = (rec["t_ns"] - t0_ns) // seg_ns
-    order = np.lexsort((rec["t_ns"], a_r))
-    inv = np.empty_like(order)
-    inv[order] = np.arange(len(order))
-    states = _NlosStates(a_r, seg_r, mix) if g_cfg.nlos else None
-    st_idx = states.index(a_r, seg_r) if states is not None else None
 
-    def residuals(vals: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted ranges and LOS residuals (m) at `vals`."""
-        h = predicted_ranges(vals, rec, anchors, n_kf)
-        return h, rec["z"] - h - _bias_values(vals, n_anchor)[a_r]
+class _EmRun:
+    """The state one EM + LM run (`_solve_em`) carries through its phases: values,
+    responsibilities, range scales, the mixture and the NLOS excess states; its graphs
+    (`_EmGraphs`), E-step (`_smooth_per_anchor`) and marginals (`_em_marginals`) live
+    apart."""
 
-    h, r_los = residuals(values)
-    g = rec["g_online"].copy() if g_cfg.nlos else np.zeros(len(h))
-    if states is not None and st_idx is not None:
-        states.values = _initial_state_values(states, st_idx, g, r_los,
-                                              _bias_values(values, n_anchor), mix.mu_nlos)
-    # EM runs with the LOS biases D(a) frozen at their prior mean (0): left free, a mostly
-    # blocked anchor trades its NLOS excess against D(a) and EM settles in a biased basin.
-    # One final LM round with the last responsibilities then calibrates D(a) (and C).
-    freeze = with_bias and g_cfg.nlos
-    d0 = np.zeros(n_anchor) if freeze else _bias_values(values, n_anchor)
-    if freeze:
-        for a in range(n_anchor):
-            values.update(D(a), 0.0)
-    rounds = max(g_cfg.em_iterations, 0) + 1 if g_cfg.nlos else 1
-    g_prev: np.ndarray | None = None
-    done = 0
-    r_nlos = np.zeros(len(h))
-    sig_l = mix.sigma_los if g_cfg.nlos else uwb.sigma
-
-    factors = _RangeFactors(rec, a_r, uwb, with_bias,
-                            None if states is None or st_idx is None
-                            else [states.keys[i] for i in st_idx.tolist()])
-    if states is not None:
-        for i, key in enumerate(states.keys):
-            values.insert(key, float(states.values[i]))
-
-    graphs = _EmGraphs(g_cfg, base_graph, d0, states, mix, factors, with_bias)
-
-    def lm_round(vals: gtsam.Values, g: np.ndarray, frozen: bool,
-                 max_it: int | None = None) -> gtsam.Values:
-        return graphs.lm_round(vals, rec["z"], sig_l, g, frozen, max_it)
-
-    e_var = mix.sigma_slow**2 if nlos_first else 0.03**2
-    if nlos_first and states is not None:
-        # NLOS-first start: every range on its anchor's excess state only, so no range is
-        # committed to zero bias before the first E-step (see `solve`)
-        values = lm_round(values, np.ones(len(h)), freeze, EM_ROUND_LM_ITERATIONS)
-        h, r_los = residuals(values)
-        states.values = np.array([values.atDouble(k) for k in states.keys])
-    for it in range(rounds):
+    def __init__(
+        self, cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+        rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int, model: NlosModel,
+        t0_ns: int, scale0: np.ndarray | None, nlos_first: bool,
+        wheel_scale: _WheelScale | None, common_scale: bool,
+    ) -> None:
+        g_cfg = cfg.graph
+        self.g_cfg, self.uwb = g_cfg, cfg.uwb
+        self.anchors, self.n_kf = anchors, n_kf
+        self.nlos_first, self.common_scale = nlos_first, common_scale
+        self.wheel_scale = wheel_scale
+        if wheel_scale is not None:  # its wheel factors are replaced: keep the caller's intact
+            base_graph = gtsam.NonlinearFactorGraph(base_graph)
+        self.base_graph = base_graph
+        self.with_scale = scale0 is not None  # range scales are estimated (`auto`: online)
+        self.scale = np.zeros(len(anchors)) if scale0 is None else scale0.copy()
+        self.z_raw = rec["z"]
+        self.rec = rec = dict(rec)
+        self.a_r = a_r = rec["anchor"].astype(np.int64)
+        rec["z"] = self.z_raw / (1.0 + self.scale[rec["anchor"]])
+        with_bias = g_cfg.estimate_range_bias
+        self.prior = NlosModel.from_config(cfg)
+        self.mix = mix = copy.copy(model)
+        self.values = gtsam.Values(initial)
+        self.n_anchor = n_anchor = len(anchors)
+        seg_ns = round(mix.segment_s * NS_PER_S)
+        seg_r = (rec["t_ns"] - t0_ns) // seg_ns
+        self.order = np.lexsort((rec["t_ns"], a_r))
+        self.inv = np.empty_like(self.order)
+        self.inv[self.order] = np.arange(len(self.order))
+        self.states = states = _NlosStates(a_r, seg_r, mix) if g_cfg.nlos else None
+        self.st_idx = st_idx = states.index(a_r, seg_r) if states is not None else None
+        self.h, self.r_los = self.residuals(self.values)
+        self.g = rec["g_online"].copy() if g_cfg.nlos else np.zeros(len(self.h))
         if states is not None and st_idx is not None:
-            r_nlos = rec["z"] - h - states.values[st_idx]
-            # NLOS-first, every state has been fitted to its ranges: counted as exact, a
-            # range that fits its state would look NLOS even at zero excess, so the states
-            # count as uncertain by their slow std (the online start keeps 3 cm: wider, a
-            # large constant anchor offset would pass for NLOS and escape calibration)
-            ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
-            if BATCH_SEARCH:
-                g_cur = g if g_prev is not None or not nlos_first else np.ones(len(g))
-                ll_l, ll_n = _search_windows(values, rec, anchors, n_kf, a_r, r_los, g_cur,
-                                             mix, e_var, ll_l, ll_n)
-            if it == 0:  # the learned classifier's log-odds start EM (patent S6: then the
-                ll_n = ll_n + rec["evidence"]  # fused track re-estimates the NLOS ranges)
-            g = _smooth_per_anchor(ll_l, ll_n, a_r, order, inv, mix)
-            mix.m_step(r_los, r_nlos, g, prior)
-            sig_l = mix.sigma_los
-        if g_prev is not None and np.mean(np.abs(g - g_prev) > 0.2) < 0.01:
-            break
-        g_prev = g
-        done = it + 1
-        # intermediate EM rounds only need LM to get close: the next E-step moves anyway
-        values = lm_round(values, g, freeze, EM_ROUND_LM_ITERATIONS)
-        h, r_los = residuals(values)
-        if with_scale:
-            refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
-                        common_scale)
-            rec["z"] = z_raw / (1.0 + scale[a_r])
-            r_los = rec["z"] - h - _bias_values(values, n_anchor)[a_r]
+            states.values = _initial_state_values(states, st_idx, self.g, self.r_los,
+                                                  _bias_values(self.values, n_anchor),
+                                                  mix.mu_nlos)
+        # EM runs with the LOS biases D(a) frozen at their prior mean (0): left free, a
+        # mostly blocked anchor trades its NLOS excess against D(a) and EM settles in a
+        # biased basin. One final LM round with the last responsibilities then calibrates
+        # D(a) (and C).
+        self.freeze = with_bias and g_cfg.nlos
+        d0 = np.zeros(n_anchor) if self.freeze else _bias_values(self.values, n_anchor)
+        if self.freeze:
+            for a in range(n_anchor):
+                self.values.update(D(a), 0.0)
+        self.done = 0
+        self.sig_l = mix.sigma_los if g_cfg.nlos else self.uwb.sigma
+        factors = _RangeFactors(rec, a_r, self.uwb, with_bias,
+                                None if states is None or st_idx is None
+                                else [states.keys[i] for i in st_idx.tolist()])
         if states is not None:
-            states.values = np.array([values.atDouble(k) for k in states.keys])
-    for _ in range(2 if with_scale else 0):  # scale and geometry settle together
-        values = lm_round(values, g, freeze)
-        h, r_los = residuals(values)
-        refit_scale(scale, r_los, h, (1.0 - g), a_r, mix.sigma_los, g_cfg.range_scale_sigma,
-                        common_scale)
-        rec["z"] = z_raw / (1.0 + scale[a_r])
-    if freeze:
-        values = lm_round(values, g, False)
-        h, r_los = residuals(values)
-    # the wheel scale is fitted once the range biases are free: fitted in the EM rounds,
-    # with D(a) held at zero, it would take up the radios' range offsets
-    if wheel_scale is not None:
-        wheel_scale.refit(values, n_kf)
-        if wheel_scale.apply([base_graph, *graphs.static.values()]):
-            values = lm_round(values, g, False)
-            h, r_los = residuals(values)
-    w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, r_los / sig_l)
+            for i, key in enumerate(states.keys):
+                self.values.insert(key, float(states.values[i]))
+        self.graphs = _EmGraphs(g_cfg, base_graph, d0, states, mix, factors, with_bias)
+        # NLOS-first, every state has been fitted to its ranges: counted as exact, a range
+        # that fits its state would look NLOS even at zero excess, so the states count as
+        # uncertain by their slow std (the online start keeps 3 cm: wider, a large constant
+        # anchor offset would pass for NLOS and escape calibration)
+        self.e_var = mix.sigma_slow**2 if nlos_first else 0.03**2
 
-    nlos_out = None
-    if states is not None:
-        nlos_out = (states.anchor.copy(), states.seg.copy(),
-                    np.array([values.atDouble(k) for k in states.keys]))
-    marginals = functools.partial(_em_marginals, graphs, values, rec, anchors, n_kf, h, r_los,
-                                  g, sig_l, st_idx)
-    return BatchResult(values, g, w, r_los, mix, done, graphs.iterations, scale,
-                       nlos_first and states is not None,
-                       None if wheel_scale is None else wheel_scale.applied.copy(),
-                       nlos_states=nlos_out,
-                       range_model="mixture" if states is not None else "robust",
-                       marginals=marginals if g_cfg.marginal_covariances is not False else None)
+    def residuals(self, vals: gtsam.Values) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted ranges and LOS residuals (m) at `vals`."""
+        h = predicted_ranges(vals, self.rec, self.anchors, self.n_kf)
+        return h, self.rec["z"] - h - _bias_values(vals, self.n_anchor)[self.a_r]
+
+    def lm_round(self, g: np.ndarray, frozen: bool, max_it: int | None = None) -> None:
+        """One LM solve from the current values at responsibilities `g`; the predicted
+        ranges and LOS residuals follow."""
+        self.values = self.graphs.lm_round(self.values, self.rec["z"], self.sig_l, g, frozen,
+                                           max_it)
+        self.h, self.r_los = self.residuals(self.values)
+
+    def _read_states(self) -> None:
+        assert self.states is not None
+        self.states.values = np.array([self.values.atDouble(k) for k in self.states.keys])
+
+    def _refit_scale(self) -> None:
+        """The range scales from the LOS residuals (`refit_scale`), the ranges rescaled."""
+        refit_scale(self.scale, self.r_los, self.h, (1.0 - self.g), self.a_r,
+                    self.mix.sigma_los, self.g_cfg.range_scale_sigma, self.common_scale)
+        self.rec["z"] = self.z_raw / (1.0 + self.scale[self.a_r])
+
+    def nlos_first_round(self) -> None:
+        """NLOS-first start: every range on its anchor's excess state only, so no range is
+        committed to zero bias before the first E-step (see `solve`)."""
+        self.lm_round(np.ones(len(self.h)), self.freeze, EM_ROUND_LM_ITERATIONS)
+        self._read_states()
+
+    def _e_step(self, it: int, g_prev: np.ndarray | None) -> None:
+        """Responsibilities from the residuals at the current values, then the M-step."""
+        states, st_idx, mix = self.states, self.st_idx, self.mix
+        assert states is not None and st_idx is not None
+        r_nlos = self.rec["z"] - self.h - states.values[st_idx]
+        ll_l, ll_n = mix.log_likelihoods(self.r_los, r_nlos, self.e_var)
+        if BATCH_SEARCH:
+            g_cur = self.g if g_prev is not None or not self.nlos_first else np.ones(len(self.g))
+            ll_l, ll_n = _search_windows(self.values, self.rec, self.anchors, self.n_kf,
+                                         self.a_r, self.r_los, g_cur, mix, self.e_var, ll_l,
+                                         ll_n)
+        if it == 0:  # the learned classifier's log-odds start EM (patent S6: then the
+            ll_n = ll_n + self.rec["evidence"]  # fused track re-estimates the NLOS ranges)
+        self.g = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix)
+        mix.m_step(self.r_los, r_nlos, self.g, self.prior)
+        self.sig_l = mix.sigma_los
+
+    def em_rounds(self) -> None:
+        """E-step and a short LM round until the responsibilities settle."""
+        rounds = max(self.g_cfg.em_iterations, 0) + 1 if self.g_cfg.nlos else 1
+        g_prev: np.ndarray | None = None
+        for it in range(rounds):
+            if self.states is not None and self.st_idx is not None:
+                self._e_step(it, g_prev)
+            if g_prev is not None and np.mean(np.abs(self.g - g_prev) > 0.2) < 0.01:
+                break
+            g_prev = self.g
+            self.done = it + 1
+            # intermediate EM rounds only need LM to get close: the next E-step moves anyway
+            self.lm_round(self.g, self.freeze, EM_ROUND_LM_ITERATIONS)
+            if self.with_scale:
+                self._refit_scale()
+                self.r_los = (self.rec["z"] - self.h
+                              - _bias_values(self.values, self.n_anchor)[self.a_r])
+            if self.states is not None:
+                self._read_states()
+
+    def settle(self) -> None:
+        """The scales and the geometry settle together, the LOS offsets are released, and
+        the wheel scale is refitted."""
+        for _ in range(2 if self.with_scale else 0):
+            self.lm_round(self.g, self.freeze)
+            self._refit_scale()
+        if self.freeze:
+            self.lm_round(self.g, False)
+        # the wheel scale is fitted once the range biases are free: fitted in the EM rounds,
+        # with D(a) held at zero, it would take up the radios' range offsets
+        if self.wheel_scale is not None:
+            self.wheel_scale.refit(self.values, self.n_kf)
+            if self.wheel_scale.apply([self.base_graph, *self.graphs.static.values()]):
+                self.lm_round(self.g, False)
+
+    def result(self) -> BatchResult:
+        """The run's `BatchResult` at its final values."""
+        uwb, states, values = self.uwb, self.states, self.values
+        w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, self.r_los / self.sig_l)
+        nlos_out = None
+        if states is not None:
+            nlos_out = (states.anchor.copy(), states.seg.copy(),
+                        np.array([values.atDouble(k) for k in states.keys]))
+        marginals = functools.partial(_em_marginals, self.graphs, values, self.rec,
+                                      self.anchors, self.n_kf, self.h, self.r_los, self.g,
+                                      self.sig_l, self.st_idx)
+        return BatchResult(values, self.g, w, self.r_los, self.mix, self.done,
+                           self.graphs.iterations, self.scale,
+                           self.nlos_first and states is not None,
+                           None if self.wheel_scale is None
+                           else self.wheel_scale.applied.copy(),
+                           nlos_states=nlos_out,
+                           range_model="mixture" if states is not None else "robust",
+                           marginals=marginals
+                           if self.g_cfg.marginal_covariances is not False else None)
 
 
 def observed_information_share(
