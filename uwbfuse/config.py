@@ -209,7 +209,8 @@ class InitConfig(_Section):
         0.5, gt=0, description="UWB-track displacement needed before heading is solved, m"
     )
     max_yaw_sigma: float = Field(
-        0.05, gt=0, description="largest accepted std of the initial heading, rad"
+        0.05, gt=0, description="UWB-only start (no IMU, no wheels): largest std of the "
+        "heading read from the fixes' direction of travel, rad (the other starts report theirs)"
     )
     max_window: float = Field(
         12.0, gt=0, description="longest motion window used to solve the heading, seconds"

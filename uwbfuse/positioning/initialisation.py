@@ -75,7 +75,6 @@ _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
 _V0_SIGMA = 5.0  # prior std of an unknown start velocity, m/s
 _Z_SIGMA_PLANAR = 0.5  # prior std of a wheeled base's height about init.base_height, m
 _Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_z, m
-_SIGMA_INFLATION = 2.0  # reported / least-squares std of the solved start state
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
@@ -843,7 +842,7 @@ class Initialiser:
             self.last_reason = "heading solve failed"
             return None
         verdict = accept_start(sols, problem, trk, t_ns, w_start, motion_start, max_win,
-                               gyro_bias, accel_bias, still_ok and at_rest, cfg.max_yaw_sigma)
+                               gyro_bias, accel_bias, still_ok and at_rest)
         return self._take(verdict)
 
     def _take(self, verdict: StartVerdict) -> InitialState | None:
@@ -1017,15 +1016,14 @@ def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
 def accept_start(
     sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int, w_start: int,
     motion_start: int | None, max_win: float, gyro_bias: F64, accel_bias: F64, still: bool,
-    max_yaw_sigma: float,
 ) -> StartVerdict:
-    """The one acceptance rule of every start solve (`Initialiser`'s heading solve, the
-    sparse-range `start.solve_start`): the state at t_ns from the local minima `sols` of
-    `problem` over the window from `w_start` ns, accepted when its residuals are
-    consistent (robust spread within 3 range sigmas or _MAX_MAD_REL of the median range,
-    60 % inliers) and its yaw is determined (std <= max_yaw_sigma rad, no rival minimum
-    20 degrees away within _RIVAL_MARGIN of chi-square) or a full window of max_win s has
-    been waited."""
+    """The one acceptance rule of every start solve (`Initialiser`'s heading solve): the
+    state at t_ns from the local minima `sols` of `problem` over the window from `w_start`
+    ns, accepted when its residuals are consistent (robust spread within 3 range sigmas or
+    _MAX_MAD_REL of the median range, 60 % inliers) and its yaw is determined (no rival
+    minimum 20 degrees away within _RIVAL_MARGIN of chi-square) or a full window of max_win
+    s has been waited. The yaw std is reported with the state, not required: the estimator
+    takes the start with the uncertainty it has (a prior that wide, not a later start)."""
     rr, sig = problem.rr, problem.sig
     i_k, i_v, i_s, i_b, n_unk = problem.i_k, problem.i_v, problem.i_s, problem.i_b, problem.n
     n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
@@ -1074,12 +1072,12 @@ def accept_start(
         grad[:, i_s:i_b] = rz @ trk.sens[-1]
     pcov = grad @ cov @ grad.T
     pos_sigma = float(np.sqrt(max(np.trace(pcov[:2, :2]), 0.0)))
-    # Reported stds are inflated: range errors are time-correlated (slow NLOS), which
-    # the white-noise covariance ignores (simulated NLOS sites: errors up to ~4x).
+    # The least-squares stds (scaled by the residuals' spread), as they are: a wider report
+    # makes a filter overreact to its first ranges (docs/results.md, session 15)
     state = InitialState(
         t_ns=int(t_ns), position=pos, R_map_base=r_now, velocity=vel,
-        gyro_bias=bg, accel_bias=ba, position_sigma=_SIGMA_INFLATION * pos_sigma,
-        yaw_sigma=min(_SIGMA_INFLATION * yaw_sigma, math.pi), still=still,
+        gyro_bias=bg, accel_bias=ba, position_sigma=pos_sigma,
+        yaw_sigma=min(yaw_sigma, math.pi), still=still,
         range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
         range_sigma=max(mad, 1.0) * sig,
     )
@@ -1088,7 +1086,7 @@ def accept_start(
     # solution and its (large) yaw std: the estimator must start from what it has.
     waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
         motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
-    determined = yaw_sigma <= max_yaw_sigma and margin >= _RIVAL_MARGIN
+    determined = margin >= _RIVAL_MARGIN
     if not consistent or not (determined or waited):
         reason = (f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
