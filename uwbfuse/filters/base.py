@@ -79,10 +79,12 @@ class InitialiserLike(Protocol):
 
 
 def default_initialiser(
-    config: Config, anchors: AnchorMap, streams: frozenset[str]
+    config: Config, anchors: AnchorMap, streams: frozenset[str],
+    corrects_heading: bool = True,
 ) -> InitialiserLike:
     """The project's initialiser (UWB multilateration + IMU levelling, and the start from
-    sparse ranges that the graph uses too: `positioning.sparse_start`), imported lazily."""
+    sparse ranges that the graph uses too: `positioning.sparse_start`), imported lazily;
+    `corrects_heading=False` for a consumer that cannot correct its heading later."""
     try:
         from uwbfuse.positioning.initialisation import Initialiser
     except ImportError as exc:  # pragma: no cover - only while the module is missing
@@ -91,8 +93,9 @@ def default_initialiser(
 
     # the filters take the wheel-track start only where multilateration has no fix at all
     # (Plaza1): on Labyrinth, where it has them, it moved the EKF 0.120 -> 0.163 m
-    return PoseStartInitialiser(Initialiser(config, anchors, streams), config, anchors,
-                                streams, only_without_fixes=True)
+    return PoseStartInitialiser(Initialiser(config, anchors, streams,
+                                            corrects_heading=corrects_heading),
+                                config, anchors, streams, only_without_fixes=True)
 
 
 @dataclass

@@ -540,4 +540,6 @@ def make(
         return inner
     from uwbfuse.filters.base import default_initialiser
 
-    return AnchoredDeadReckoning(inner, default_initialiser(config, anchors, streams))
+    # dead reckoning never corrects its heading: its start waits until it is pinned down
+    return AnchoredDeadReckoning(inner, default_initialiser(config, anchors, streams,
+                                                            corrects_heading=False))

@@ -80,6 +80,7 @@ _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and tra
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 _RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
+_RIVAL_SEPARATION = math.radians(20.0)  # rad: yaw minima closer than this are one basin
 RANGE_SCALE_MIN_ERROR = 0.02
 """A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
 RANGE_SCALE_MIN_EFFECT_M = 0.5
@@ -334,7 +335,12 @@ class Initialiser:
         streams: frozenset[str],
         *,
         estimate_range_bias: bool = True,
+        corrects_heading: bool = True,
     ) -> None:
+        """`corrects_heading`: the consumer corrects its heading from later data (the
+        graph, the filters); dead reckoning does not, so its start waits for a heading
+        pinned down (`accept_start`'s `narrow_basin`)."""
+        self.corrects_heading = corrects_heading
         self.config = config
         self.anchors = anchors
         self.streams = frozenset(streams)
@@ -842,7 +848,8 @@ class Initialiser:
             self.last_reason = "heading solve failed"
             return None
         verdict = accept_start(sols, problem, trk, t_ns, w_start, motion_start, max_win,
-                               gyro_bias, accel_bias, still_ok and at_rest)
+                               gyro_bias, accel_bias, still_ok and at_rest,
+                               narrow_basin=not self.corrects_heading)
         return self._take(verdict)
 
     def _take(self, verdict: StartVerdict) -> InitialState | None:
@@ -1016,14 +1023,16 @@ def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
 def accept_start(
     sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int, w_start: int,
     motion_start: int | None, max_win: float, gyro_bias: F64, accel_bias: F64, still: bool,
+    narrow_basin: bool = False,
 ) -> StartVerdict:
     """The one acceptance rule of every start solve (`Initialiser`'s heading solve): the
     state at t_ns from the local minima `sols` of `problem` over the window from `w_start`
     ns, accepted when its residuals are consistent (robust spread within 3 range sigmas or
     _MAX_MAD_REL of the median range, 60 % inliers) and its yaw is determined (no rival
-    minimum 20 degrees away within _RIVAL_MARGIN of chi-square) or a full window of max_win
-    s has been waited. The yaw std is reported with the state, not required: the estimator
-    takes the start with the uncertainty it has (a prior that wide, not a later start)."""
+    minimum _RIVAL_SEPARATION away within _RIVAL_MARGIN of chi-square; with `narrow_basin`,
+    for a consumer that cannot correct its heading later, also the best minimum's own
+    basin: a yaw std of at most a third of the separation) or a full window of max_win s
+    has been waited. The least-squares stds are reported with the state as they are."""
     rr, sig = problem.rr, problem.sig
     i_k, i_v, i_s, i_b, n_unk = problem.i_k, problem.i_v, problem.i_s, problem.i_b, problem.n
     n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
@@ -1032,7 +1041,7 @@ def accept_start(
     sols.sort(key=lambda s: s.cost)
     best = sols[0]
     yaw_best = _wrap(best.x[3])
-    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > math.radians(20)]
+    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > _RIVAL_SEPARATION]
     dof = max(n_r - n_unk, 1)
     res = best.fun[:n_r]
     mad = float(np.median(np.abs(res))) * 1.4826
@@ -1086,7 +1095,10 @@ def accept_start(
     # solution and its (large) yaw std: the estimator must start from what it has.
     waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
         motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
-    determined = margin >= _RIVAL_MARGIN
+    # narrow basin: a heading _RIVAL_SEPARATION off costs _RIVAL_MARGIN in the best
+    # minimum's own basin too (quadratic: (separation / std)^2)
+    determined = margin >= _RIVAL_MARGIN and (
+        not narrow_basin or yaw_sigma <= _RIVAL_SEPARATION / math.sqrt(_RIVAL_MARGIN))
     if not consistent or not (determined or waited):
         reason = (f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
