@@ -391,9 +391,14 @@ class _Problem:
     wheel: WheelRecords | None
     nlos_first: bool
 
-    def wheel_scale(self) -> _WheelScale | None:
-        """A fresh odometry scale fit (each LM run rebuilds its own wheel factors)."""
-        if self.wheel is None or not self.wheel.k or not self.cfg.graph.estimate_wheel_scale:
+    def wheel_scale(self, nlos: bool = True) -> _WheelScale | None:
+        """A fresh odometry scale fit (each LM run rebuilds its own wheel factors); None for
+        a robust range model (`nlos` False): there no range floats on an NLOS excess state,
+        every range holds the track, so it does not drift with the odometry's scale error
+        the refit is for; a refit to that range-held track only moves what the ranges
+        placed (docs/results.md, "Batch against the plain estimator")."""
+        if (not nlos or self.wheel is None or not self.wheel.k
+                or not self.cfg.graph.estimate_wheel_scale):
             return None
         return _WheelScale(self.wheel)
 
@@ -405,8 +410,8 @@ class _Problem:
                              self.n_kf, mix, self.t0_ns, scale0,
                              nlos_first=self.nlos_first, wheel_scale=self.wheel_scale())
         return _solve_robust(self.cfg, self.base_graph, initial, rec, self.anchors,
-                             self.n_kf, mix, self.t0_ns, scale0, self.wheel_scale,
-                             m.common_scale)
+                             self.n_kf, mix, self.t0_ns, scale0,
+                             lambda: self.wheel_scale(nlos=False), m.common_scale)
 
 
 def _cross_validated(
@@ -445,7 +450,7 @@ def _cross_validated(
         out = _solve_em(_robust_config(cfg, f.mixture.sigma_los), problem.base_graph,
                         f.values, rec, problem.anchors, problem.n_kf, f.mixture,
                         problem.t0_ns, None if scale0 is None else f.scale,
-                        nlos_first=False, wheel_scale=problem.wheel_scale(),
+                        nlos_first=False, wheel_scale=problem.wheel_scale(nlos=False),
                         common_scale=best.common_scale)
         out.mixture.sigma_los = f.mixture.sigma_los
     out.range_model = best.name
