@@ -391,14 +391,10 @@ class _Problem:
     wheel: WheelRecords | None
     nlos_first: bool
 
-    def wheel_scale(self, nlos: bool = True) -> _WheelScale | None:
-        """A fresh odometry scale fit (each LM run rebuilds its own wheel factors); None for
-        a robust range model (`nlos` False): there no range floats on an NLOS excess state,
-        every range holds the track, so it does not drift with the odometry's scale error
-        the refit is for; a refit to that range-held track only moves what the ranges
-        placed (docs/results.md, "Batch against the plain estimator")."""
-        if (not nlos or self.wheel is None or not self.wheel.k
-                or not self.cfg.graph.estimate_wheel_scale):
+    def wheel_scale(self) -> _WheelScale | None:
+        """A fresh odometry scale fit (each LM run rebuilds its own wheel factors), for the
+        mixture's fits only (`_solve_robust` says why)."""
+        if self.wheel is None or not self.wheel.k or not self.cfg.graph.estimate_wheel_scale:
             return None
         return _WheelScale(self.wheel)
 
@@ -410,8 +406,7 @@ class _Problem:
                              self.n_kf, mix, self.t0_ns, scale0,
                              nlos_first=self.nlos_first, wheel_scale=self.wheel_scale())
         return _solve_robust(self.cfg, self.base_graph, initial, rec, self.anchors,
-                             self.n_kf, mix, self.t0_ns, scale0,
-                             lambda: self.wheel_scale(nlos=False), m.common_scale)
+                             self.n_kf, mix, self.t0_ns, scale0, m.common_scale)
 
 
 def _cross_validated(
@@ -450,7 +445,7 @@ def _cross_validated(
         out = _solve_em(_robust_config(cfg, f.mixture.sigma_los), problem.base_graph,
                         f.values, rec, problem.anchors, problem.n_kf, f.mixture,
                         problem.t0_ns, None if scale0 is None else f.scale,
-                        nlos_first=False, wheel_scale=problem.wheel_scale(nlos=False),
+                        nlos_first=False, wheel_scale=None,  # robust: see _solve_robust
                         common_scale=best.common_scale)
         out.mixture.sigma_los = f.mixture.sigma_los
     out.range_model = best.name
@@ -491,19 +486,22 @@ def _robust_config(cfg: Config, sigma: float) -> Config:
 def _solve_robust(
     cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
     rec: dict[str, np.ndarray], anchors: np.ndarray, n_kf: int, model: NlosModel,
-    t0_ns: int, scale0: np.ndarray | None, wheel_scale: Callable[[], _WheelScale | None],
-    common_scale: bool = False,
+    t0_ns: int, scale0: np.ndarray | None, common_scale: bool = False,
 ) -> BatchResult:
     """Huber LM around per-anchor offsets; then the LOS sigma from the residuals (1.4826
-    MAD) and LM again at that sigma (`wheel_scale`: a factory of fresh `_WheelScale`s)."""
+    MAD) and LM again at that sigma. No wheel-scale refit: no range floats on an NLOS
+    excess state here, every range holds the track, so it does not drift with the
+    odometry's scale error the refit is for; refitted to that range-held track the scale
+    only moves what the ranges placed (docs/results.md, "Batch against the plain
+    estimator")."""
     first = _solve_em(_robust_config(cfg, cfg.uwb.sigma), base_graph, initial, rec, anchors,
                       n_kf, model, t0_ns, scale0, nlos_first=False,
-                      wheel_scale=wheel_scale(), common_scale=common_scale)
+                      common_scale=common_scale)
     sigma = float(np.clip(1.4826 * np.median(np.abs(first.residual)), SIGMA_LOS_MIN,
                           MAX_ROBUST_SIGMA))
     out = _solve_em(_robust_config(cfg, sigma), base_graph, first.values, rec, anchors, n_kf,
                     model, t0_ns, None if scale0 is None else first.scale, nlos_first=False,
-                    wheel_scale=wheel_scale(), common_scale=common_scale)
+                    common_scale=common_scale)
     out.mixture.sigma_los = sigma
     out.range_model = "robust, common scale" if common_scale else "robust"
     return out

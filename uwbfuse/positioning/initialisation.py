@@ -1025,10 +1025,11 @@ def accept_start(
     motion_start: int | None, max_win: float, gyro_bias: F64, accel_bias: F64, still: bool,
     narrow_basin: bool = False,
 ) -> StartVerdict:
-    """The one acceptance rule of every start solve (`Initialiser`'s heading solve): the
-    state at t_ns from the local minima `sols` of `problem` over the window from `w_start`
-    ns, accepted when its residuals are consistent (robust spread within 3 range sigmas or
-    _MAX_MAD_REL of the median range, 60 % inliers) and its yaw is determined (no rival
+    """The acceptance rule of `Initialiser`'s heading solve (the sparse-range start keeps its
+    own, `start.solve_start`): the state at t_ns from the local minima `sols` of `problem`
+    over the window from `w_start` ns, accepted when its residuals are consistent (robust
+    spread within 3 range sigmas or _MAX_MAD_REL of the median range, 60 % inliers) and its
+    yaw is determined (no rival
     minimum _RIVAL_SEPARATION away within _RIVAL_MARGIN of chi-square; with `narrow_basin`,
     for a consumer that cannot correct its heading later, also the best minimum's own
     basin: a yaw std of at most a third of the separation) or a full window of max_win s
