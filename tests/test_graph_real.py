@@ -74,6 +74,9 @@ def test_isas_batch_backdates_its_robust_fit_by_the_imu() -> None:
     ev = evaluate(res.trajectory, read_tum(real("isas-walk1/gt_anchor_frame.tum")),
                   align="se2", max_dt=0.05)
     assert ev.ate_2d.rmse < 0.11  # issue 13's target for this log
+    # the handheld consumer MEMS errs far beyond its [imu] white noise: the IMU noise
+    # inflation from the log's evidence (measured 52.6; the online pass ended at 52.6)
+    assert 16.0 < res.report["batch"]["imu_noise_inflation"] < 128.0
 
 
 def test_labyrinth_smoothed_output_smooths_the_whole_graph_and_keeps_its_range_model() -> None:
@@ -91,9 +94,9 @@ def test_labyrinth_smoothed_output_smooths_the_whole_graph_and_keeps_its_range_m
     assert ev.ate_2d.rmse < 0.051
 
 
-# measured (SE(3)-aligned to the Vive GT, IMU noise inflation `auto` = 30 without wheels):
-# isam2 0.231, isam2-smoothed 0.134, batch 0.124 (ekf 0.165; at inflation 10: 0.453, 0.218,
-# 0.227)
+# measured (SE(3)-aligned to the Vive GT, IMU noise inflation `auto`, from the log: online
+# fits 73, 68, 67, batch 52.6): isam2 0.180, isam2-smoothed 0.080, batch 0.082 (2026-12-05,
+# session 16; with the former constant 30: 0.220, 0.077, 0.080)
 @pytest.mark.parametrize(("method", "bound"), [(Method.ISAM2, 0.30), (Method.ISAM2_SMOOTHED, 0.18),
                                                 (Method.BATCH, 0.16)])
 def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
@@ -105,6 +108,11 @@ def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
     assert ev.ate_2d.rmse < bound
     # no wheels to pin a scale: `auto` leaves range scales off
     assert all(a["scale"] is None for a in res.report["anchors"].values())
+    # the online IMU noise fits (from 10 s of keyframes on) find the IMU far noisier than
+    # its [imu] figures (measured, isam2: 73, 68, 67; batch's backdated pass, whose first
+    # window holds the 4 s the stick rests: 11, 36, 69)
+    fits = res.report["online_imu_noise"]["fits"]
+    assert fits and fits[-1]["inflation"] > 16.0
 
 
 def test_plaza2_batch_calibrates_the_range_scale_on_default_config() -> None:

@@ -242,9 +242,13 @@ class GraphConfig(_Section):
     imu_noise_inflation: float | Literal["auto"] = Field(
         "auto", description="factor on the IMU noise densities and bias random walks in "
         "the preintegration: room for the unmodelled errors of consumer MEMS (scale, "
-        "misalignment, vibration); 1 = trust the [imu] figures as they are; auto = 10 when "
-        "the log has wheel odometry, 30 when it has none (the IMU alone then carries the "
-        "motion between ranges)"
+        "misalignment, vibration); a number is used as given (1 = trust the [imu] figures "
+        "as they are); auto = estimated from the log: batch and isam2-smoothed's final "
+        "smoothing take the factor of greatest Laplace evidence of the whole graph, 1 .. "
+        "256 (loosen only), where a likelihood-ratio test rejects 1; the online graph "
+        "starts at 256 and, from 10 s of keyframes on, takes the loosest factor the same "
+        "evidence over its last 30 s does not reject (again each time the graph's age has "
+        "doubled); logs without ranges keep the [imu] figures"
     )
     update_every: int = Field(
         3, ge=1, description="keyframes per iSAM2 update (between updates the output is "

@@ -31,7 +31,7 @@ widens it to the inputs the graph sees:
 - `estimate()` carries the pose covariance from P (ROS order; `pose_covariance`).
 - Covariance updates in Joseph form.
 - Process noise: the `[imu]` densities and bias random walks times `[filter]
-  imu_noise_inflation` (default 30, the graph's figure for logs without wheels): a real
+  imu_noise_inflation` (default 30): a real
   consumer MEMS carried by hand errs far beyond its white noise (scale, misalignment,
   vibration), and a filter that trusts the datasheet figures becomes overconfident, gates
   good ranges and diverges (ISAS-Walk1: 2-D ATE 0.61 m at 1, 0.18 m at 30; simulated

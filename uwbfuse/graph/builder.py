@@ -20,6 +20,7 @@ from __future__ import annotations
 import copy
 import logging
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -194,19 +195,39 @@ class WheelRecords:
                 "cov": np.asarray(self.cov), "index": np.asarray(self.index, np.int64)}
 
 
-# `graph.imu_noise_inflation = "auto"`: with wheels the wheel factor carries the motion
-# between ranges; without wheels the IMU alone carries it and a consumer MEMS errs far
-# beyond its white noise. Fitted on one log (ISAS-Walk1), a constant still to be replaced by
-# an estimate from the log (docs/results.md)
-IMU_INFLATION_WITH_WHEELS = 10.0
-IMU_INFLATION_WITHOUT_WHEELS = 30.0
+@dataclass
+class RecentMotion:
+    """The motion factors (the IMU factor first, then the wheel factor and the planar
+    prior; no external-pose factors) and the ranges of the newest `keep` keyframe
+    intervals, for the online IMU noise fit over the data received so far
+    (`noise_fit.fit_imu_window`). `ka[i]` is the first keyframe of interval i; the ranges
+    are raw (anchor index, metres) with the tag in the frame of their keyframe."""
 
+    keep: int
+    ka: deque[int] = field(default_factory=deque)
+    factors: deque[list[gtsam.NonlinearFactor]] = field(default_factory=deque)
+    ranges: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=deque)
+    imu: imu_mod.ImuRecords = field(default_factory=imu_mod.ImuRecords)
 
-def imu_inflation(setting: float | str, has_wheel: bool) -> float:
-    """The preintegration noise inflation for `graph.imu_noise_inflation` (number or auto)."""
-    if setting == "auto":
-        return IMU_INFLATION_WITH_WHEELS if has_wheel else IMU_INFLATION_WITHOUT_WHEELS
-    return float(setting)
+    def add(self, ka: int, factors: list[gtsam.NonlinearFactor],
+            bias: gtsam.imuBias.ConstantBias, pieces: tuple[np.ndarray, np.ndarray, np.ndarray]
+            ) -> None:
+        """Keyframe interval `ka` -> `ka` + 1: its motion factors, the bias and pieces of
+        its IMU factor (`factors[0]`); the oldest interval beyond `keep` leaves."""
+        self.ka.append(ka)
+        self.factors.append(factors)
+        self.ranges.append((np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))))
+        self.imu.add(ka, -1, bias, *pieces)
+        while len(self.ka) > self.keep:
+            self.ka.popleft()
+            self.factors.popleft()
+            self.ranges.popleft()
+        self.imu.drop_before(self.ka[0])
+
+    def add_ranges(self, ka: int, anchor: np.ndarray, z: np.ndarray, tag: np.ndarray) -> None:
+        """The ranges attached to keyframe `ka` (the newest interval's first keyframe)."""
+        if self.ka and self.ka[-1] == ka:
+            self.ranges[-1] = (anchor, z, tag)
 
 
 def held_anchor_bias_sigma(configured: float, cap: float) -> float:
@@ -271,9 +292,11 @@ class GraphBuilder:
         wheel: WheelTrack,
         record: bool,
         seeding: bool | None = None,
+        recent_s: float | None = None,
     ) -> None:
         """Declares the builder's state, group by group (`_init_*`); every attribute the
-        smoother reads is set here once."""
+        smoother reads is set here once. `recent_s`: keep the newest seconds of motion
+        factors and ranges for the online IMU noise fit (`recent`)."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
@@ -294,7 +317,19 @@ class GraphBuilder:
         self.nlos = self.g.nlos
         self.z0 = planar_height(anchors, float(start.position[2]))
         self._init_nlos_state()
+        # the IMU noise inflation of the factors built from now on (`set_imu_inflation`).
+        # `auto` with ranges starts as loose as the noise fit may go (a tight IMU factor
+        # at a start still uncertain is ill-conditioned, a loose one costs little while
+        # the ranges hold the track) until the log has shown its noise (`noise_fit`);
+        # without ranges nothing absolute tells the noise: the configured one
+        setting = self.g.imu_noise_inflation
+        fit = setting == "auto" and "imu" in streams and "uwb" in streams and len(anchors) > 0
+        self.imu_inflation = (2.0 ** imu_mod.IMU_INFLATION_MAX_LOG2 if fit
+                              else 1.0 if setting == "auto" else float(setting))
         self.pim_params = self._preintegration_params()
+        # the newest keyframes for the online IMU noise fit (`recent_s` s of them), or None
+        self.recent = (RecentMotion(max(round(recent_s * self.g.keyframe_rate), 1))
+                       if recent_s is not None and fit else None)
         self._init_estimate(start)
         self._init_pending()
         self._init_records(record, seeding)
@@ -310,10 +345,29 @@ class GraphBuilder:
                                                self.g.motion_turn_density,
                                                self.cfg.imu.gravity)
         if self.has_imu:
-            return imu_mod.preintegration_params(
-                self.cfg.imu, self.cfg.extrinsics,
-                imu_inflation(self.g.imu_noise_inflation, self.has_wheel))
+            return imu_mod.preintegration_params(self.cfg.imu, self.cfg.extrinsics,
+                                                 self.imu_inflation)
         return None
+
+    def set_imu_inflation(self, inflation: float) -> None:
+        """The IMU factors built from now on (and the predictions) take the `[imu]` noise
+        times `inflation` (a real IMU only; the constant-velocity prior keeps its own)."""
+        if self.cv_motion or not self.has_imu or inflation == self.imu_inflation:
+            return
+        self.imu_inflation = float(inflation)
+        self.pim_params = self._preintegration_params()
+
+    def complete_imu_records(self, inflation: float) -> None:
+        """batch, once the whole log is in: the recorded IMU factors at the noise
+        inflation `inflation` (`noise_fit.fit_imu_noise`), and the predictions after
+        the last keyframe with them."""
+        rec = self.imu_records
+        if self.full_graph is None or not rec.k:
+            return
+        cov = rec.covariances(self.cfg.imu, self.cfg.extrinsics, inflation)
+        for idx, factor in zip(rec.index, rec.factors_at(self.full_graph, cov), strict=True):
+            self.full_graph.replace(idx, factor)
+        self.set_imu_inflation(inflation)
 
     def _init_nlos_state(self) -> None:
         """The NLOS model and each anchor's online NLOS state (the newest excess state's
@@ -364,6 +418,7 @@ class GraphBuilder:
         # roll, pitch (rad) and z (m) sigmas of the wheel factor
         self.wheel_records = WheelRecords(
             out_of_plane=(0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2))
+        self.imu_records = imu_mod.ImuRecords()  # the IMU factors (a real IMU's only)
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         # indices in `full_graph` of the external-pose factors (`pose_factor`)
         self.pose_index: list[int] = []
@@ -661,6 +716,23 @@ class GraphBuilder:
                         gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_anchor_sigma)))
         return inc
 
+    def restart_priors(self, k: int, pose: gtsam.Pose3, vel: np.ndarray | None,
+                       bias: gtsam.imuBias.ConstantBias | None) -> gtsam.NonlinearFactorGraph:
+        """Loose priors on keyframe k's state at `pose` (and `vel`, `bias` with an IMU)
+        and the anchors at their positions: where a smoother starts afresh (re-anchoring)
+        or a window of the graph begins (the online IMU noise fit)."""
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.PriorFactorPose3(
+            X(k), pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (0.5, 0.5, 0.5)))))
+        if self.has_imu and vel is not None and bias is not None:
+            graph.add(gtsam.PriorFactorVector(V(k), vel, diagonal([0.5] * 3)))
+            graph.add(gtsam.PriorFactorConstantBias(B(k), bias,
+                                                    diagonal(self.bias_prior_sigmas())))
+        for a in range(len(self.anchors)):
+            graph.add(gtsam.PriorFactorPoint3(L(a), self.anchors.positions[a],
+                                              diagonal([ANCHOR_SIGMA] * 3)))
+        return graph
+
     def bias_prior_sigmas(self) -> np.ndarray:
         """IMU bias prior sigmas (m/s^2, rad/s): the IMU's, or the virtual IMU's tight ones."""
         if self.cv_motion:
@@ -684,16 +756,22 @@ class GraphBuilder:
         t_a, t_b = self.time_of(ka), self.time_of(k)
         dt = (t_b - t_a) / NS_PER_S
         pose_a, vel_a, bias_a = self.pose, self.vel, self.bias
+        motion: list[gtsam.NonlinearFactor] = []  # this interval's motion factors (`recent`)
+        pieces = None
         new_pose = pose_a
         new_vel = vel_a
         if self.has_imu:
-            pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, bias_a)
             gy, ac, dts = self.imu.pieces(t_a, t_b)
             if len(dts) == 0:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)
-            imu_mod.integrate(pim, gy, ac, dts)
-            inc.graph.add(gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim))
+            pim = imu_mod.preintegrate(self.pim_params, bias_a, gy, ac, dts)
+            if self.record and self.full_graph is not None and not self.cv_motion:
+                self.imu_records.add(ka, self.full_graph.size() + inc.graph.size(), bias_a,
+                                     gy, ac, dts)  # pushed by `_record` below
+            motion.append(gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim))
+            inc.graph.add(motion[-1])
+            pieces = (gy, ac, dts)
             pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
             new_pose, new_vel = pred.pose(), pred.velocity()
             inc.values.insert(V(k), new_vel)
@@ -710,7 +788,8 @@ class GraphBuilder:
                 wr.delta.append(d)
                 wr.cov.append(cov)
                 wr.index.append(self.full_graph.size() + inc.graph.size())
-            inc.graph.add(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
+            motion.append(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
+            inc.graph.add(motion[-1])
             wp = pose_a.compose(se2_to_pose3(d))
             if self.has_imu:
                 xyz = np.array([wp.x(), wp.y(), new_pose.z()])
@@ -724,7 +803,10 @@ class GraphBuilder:
             inc.graph.add(gtsam.PriorFactorPose3(X(k), level, diagonal(pose_sigmas(
                 (self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big), (big, big, big)))))
         if self.planar:
-            inc.graph.add(self._planar_prior(k, new_pose))
+            motion.append(self._planar_prior(k, new_pose))
+            inc.graph.add(motion[-1])
+        if self.recent is not None and pieces is not None:
+            self.recent.add(ka, motion, bias_a, pieces)
         inc.values.insert(X(k), new_pose)
         inc.stamps[X(k)] = self.stamp(k)
         t_p, p_p, q_p, c_p = self.poses.take(t_b)
@@ -833,6 +915,8 @@ class GraphBuilder:
         if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
                                             len(rec.k), t_ns=t, evidence=evidence), slots))
+        if self.recent is not None:
+            self.recent.add_ranges(ka, a, z_raw, tag_kf)
         rec.k.append(np.full(len(t), ka, np.int64))
         rec.anchor.append(a)
         rec.z.append(z_raw)

@@ -50,11 +50,10 @@ import numpy as np
 from uwbfuse.config import Config
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
-from uwbfuse.graph import covariance, offline
+from uwbfuse.graph import covariance, noise_fit, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
 from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
-from uwbfuse.graph.noise import diagonal, pose_sigmas
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.uwb import los_subset_search
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
@@ -143,6 +142,12 @@ class GraphEstimator(EstimatorBase):
         self._wheel_offset_s: float | None = None  # batch: the wheel time offset chosen, s
         # batch: the wheel noise factors (translation, heading) fitted, times the configured
         self._wheel_noise: tuple[float, float] | None = None
+        # batch: the IMU noise inflation fitted (times the [imu] noise)
+        self._imu_inflation: float | None = None
+        # online IMU noise fits (`_fit_imu_online`): the last one's graph age, s, and each
+        self._imu_fit_age: float | None = None
+        self._imu_fits: list[dict[str, Any]] = []
+        self._online_imu_inflation: float | None = None  # the online graph's, once started
         self._static: PoseEstimate | None = None  # standstill fix before the start
         # pose covariances (ROS order, map axes; `graph.marginal_covariances`): the newest
         # solved keyframe's (time, position, covariance, velocity covariance) that the
@@ -282,10 +287,13 @@ class GraphEstimator(EstimatorBase):
     def _start(self, state: Any) -> None:
         self._init_t = int(state.t_ns)
         state = self._backdated(state)
+        auto_imu = self.cfg.graph.imu_noise_inflation == "auto"
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
+            recent_s=noise_fit.ONLINE_WINDOW_S if auto_imu else None,
         )
+        self._online_imu_inflation = self.builder.imu_inflation
         self.builder.use_priors(self._range_priors)
         for t, a, r in self.init.pre_ranges:
             self.builder.add_ranges(t, a, r)
@@ -335,9 +343,59 @@ class GraphEstimator(EstimatorBase):
             self._save_head_covariance(sm, b)
             self._save_leaving(sm, b)
             self._review(sm, b)
+            self._fit_imu_online(sm, b)
         except (RuntimeError, ValueError) as exc:  # GTSAM raises both
             self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
+
+    def _fit_imu_online(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """`graph.imu_noise_inflation = "auto"`: when one is due (`noise_fit.online_fit_due`),
+        the IMU noise inflation of the evidence over the newest keyframes
+        (`noise_fit.fit_imu_window`, from their estimates so far: causal) for the IMU
+        factors built from now on; each fit's graph age, result and wall time go into the
+        report."""
+        rec = b.recent
+        age = b.stamp(b.k)
+        if rec is None or not rec.ka or not noise_fit.online_fit_due(age, self._imu_fit_age):
+            return
+        self._imu_fit_age = age
+        tic = time.perf_counter()
+        values = self._window_values(sm, b, rec.ka[0])
+        f = None
+        if values is not None:
+            k0 = rec.ka[0]
+            priors = b.restart_priors(k0, values.atPose3(X(k0)), values.atVector(V(k0)),
+                                      values.atConstantBias(B(k0)))
+            f = noise_fit.fit_imu_window(
+                self.cfg, rec, priors, values, b.scale if b.with_scale else None,
+                b.range_bias if b.with_bias else None, b.robust_sigma(), b.imu_inflation)
+        if f is not None:
+            b.set_imu_inflation(f)
+            self._online_imu_inflation = f
+        self._imu_fits.append({"graph_age_s": round(age, 3), "inflation": b.imu_inflation,
+                               "fitted": f is not None,
+                               "wall_ms": round(1e3 * (time.perf_counter() - tic), 1)})
+
+    def _window_values(self, sm: OnlineSmoother, b: GraphBuilder, k0: int
+                       ) -> gtsam.Values | None:
+        """The estimates so far of keyframes k0 .. newest (as they left the smoother, or
+        its current ones) and the anchors; None where one is missing."""
+        values = gtsam.Values()
+        try:
+            for k in range(k0, b.k + 1):
+                if k < self._saved_upto:
+                    values.insert(X(k), self._kf_pose[k])
+                    values.insert(V(k), self._kf_vel[k])
+                    values.insert(B(k), self._kf_bias[k])
+                else:
+                    values.insert(X(k), sm.pose(k))
+                    values.insert(V(k), sm.velocity(k))
+                    values.insert(B(k), sm.bias(k))
+        except (KeyError, RuntimeError, IndexError, ValueError):
+            return None
+        for a in range(len(self.anchors)):
+            values.insert(L(a), self.anchors.positions[a])
+        return values
 
     def _review(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """Re-classify the ranges in the lag window with the smoothed estimate (fixed-lag EM).
@@ -561,22 +619,16 @@ class GraphEstimator(EstimatorBase):
         self._head_cov = None
         inc = Increment()
         s = b.stamp(k)
-        inc.graph.add(gtsam.PriorFactorPose3(
-            X(k), b.pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (0.5, 0.5, 0.5)))))
+        inc.graph.push_back(b.restart_priors(k, b.pose, b.vel, b.bias))
         inc.values.insert(X(k), b.pose)
         inc.stamps[X(k)] = s
         if b.has_imu:
-            inc.graph.add(gtsam.PriorFactorVector(V(k), b.vel, diagonal([0.5] * 3)))
-            inc.graph.add(gtsam.PriorFactorConstantBias(
-                B(k), b.bias, diagonal(b.bias_prior_sigmas())))
             inc.values.insert(V(k), b.vel)
             inc.values.insert(B(k), b.bias)
             inc.stamps[V(k)] = s
             inc.stamps[B(k)] = s
         for a in range(len(self.anchors)):
-            p = self.anchors.positions[a]
-            inc.graph.add(gtsam.PriorFactorPoint3(L(a), p, diagonal([1e-3] * 3)))
-            inc.values.insert(L(a), p)
+            inc.values.insert(L(a), self.anchors.positions[a])
             inc.stamps[L(a)] = s
             if b.with_bias:
                 inc.graph.add(gtsam.PriorFactorDouble(
@@ -596,17 +648,20 @@ class GraphEstimator(EstimatorBase):
     def forget_before(self, t_ns: int) -> None:
         """isam2 only (live use, `uwbfuse.Localizer`): drop what only the offline outputs
         (isam2-smoothed, batch) and the report's totals keep of the time before `t_ns`,
-        which must lie before the lag window: keyframe estimates, range records, wheel
-        samples, step epochs; latency samples are kept for the last LIVE_LATENCY_KEPT
-        updates. Memory then stays flat however long the run; `report()` counts the
-        ranges since `t_ns` only. The causal estimates are unchanged."""
+        which must lie before the lag window: keyframe estimates (but those of the online
+        IMU noise fit's window, `_window_values`), range records, wheel samples, step
+        epochs; latency samples are kept for the last LIVE_LATENCY_KEPT updates. Memory
+        then stays flat however long the run; `report()` counts the ranges since `t_ns`
+        only. The causal estimates are unchanged."""
         b = self.builder
         if self.method is not Method.ISAM2 or b is None:
             return
         t_ns = min(int(t_ns), b.time_of(b.k) - round(self.cfg.graph.lag * NS_PER_S))
         k_old = min((t_ns - b.t0) // b.period_ns, self._saved_upto)
+        # the online IMU noise fit's window (`_window_values`) keeps its estimates
+        k_kf = min(k_old, b.recent.ka[0]) if b.recent is not None and b.recent.ka else k_old
         for kf in (self._kf_pose, self._kf_vel, self._kf_bias, self._kf_pred):
-            for k in [k for k in kf if k < k_old]:
+            for k in [k for k in kf if k < k_kf]:
                 del kf[k]
         b.records.forget(int(k_old))
         self.wheel.drop_before(t_ns)
@@ -691,7 +746,11 @@ class GraphEstimator(EstimatorBase):
     def _run_batch(self) -> None:
         b = self.builder
         assert b is not None
+        # the online pass built its IMU factors at the inflations of its time (`auto`):
+        # one, its last, for the wheel fits, then the whole log's own
+        b.complete_imu_records(b.imu_inflation)
         self._complete_wheel_records()
+        self._fit_imu_noise()
         graph, initial, rec = self.batch_inputs()
         self._batch = offline.solve(self.cfg, graph, initial, rec,
                                     self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
@@ -707,7 +766,7 @@ class GraphEstimator(EstimatorBase):
         scores best (to WHEEL_OFFSET_MAX_PERIODS), each scored by the error after one Huber
         LM of the recorded graph with the ranges at the online robust sigma
         (`offline.motion_fit_error`); then, at that offset, the wheel noise of greatest
-        evidence (`offline.fit_wheel_noise`, `graph.estimate_wheel_noise`)."""
+        evidence (`noise_fit.fit_wheel_noise`, `graph.estimate_wheel_noise`)."""
         b = self.builder
         assert b is not None
         if not (b.has_wheel and len(self.wheel) > 1):
@@ -753,12 +812,26 @@ class GraphEstimator(EstimatorBase):
         b.complete_wheel_records(round(f * period))
         if self.cfg.graph.estimate_wheel_noise:
             graph, _, rec = self.batch_inputs()  # from the motion fit at the best offset
-            fac = offline.fit_wheel_noise(self.cfg, graph, solved[best], rec,
+            fac = noise_fit.fit_wheel_noise(self.cfg, graph, solved[best], rec,
                                           b.scale if b.with_scale else None,
                                           b.robust_sigma(), b.with_bias, b.wheel_records,
                                           b.pose_index)
             self._wheel_noise = (float(fac[0]), float(fac[1]))
             b.complete_wheel_records(round(f * period), self._wheel_noise)
+
+    def _fit_imu_noise(self) -> None:
+        """`graph.imu_noise_inflation = "auto"`: the offline solve's IMU factors at the
+        inflation of greatest evidence over the whole log (`noise_fit.fit_imu_noise`,
+        searched from the one the online pass used; its wheel factors as completed)."""
+        b = self.builder
+        assert b is not None
+        if self.cfg.graph.imu_noise_inflation != "auto" or not b.imu_records.k:
+            return
+        graph, initial, rec = self.batch_inputs()
+        self._imu_inflation = noise_fit.fit_imu_noise(
+            self.cfg, graph, initial, rec, b.scale if b.with_scale else None,
+            b.robust_sigma(), b.with_bias, b.imu_records, b.pose_index, b.imu_inflation)
+        b.complete_imu_records(self._imu_inflation)
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
@@ -930,6 +1003,8 @@ class GraphEstimator(EstimatorBase):
             if self._wheel_noise is not None:
                 out[key]["wheel_noise_factor"] = {"v": self._wheel_noise[0],
                                                   "omega": self._wheel_noise[1]}
+            if self._imu_inflation is not None:
+                out[key]["imu_noise_inflation"] = self._imu_inflation
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}
@@ -960,6 +1035,9 @@ class GraphEstimator(EstimatorBase):
                                       "robust": float(b.prequential[1])},
             "ranges": b.prequential_n, "z": b.prequential_z(),
             "verdict": b.prequential_verdict()}
+        if b.has_imu and not b.cv_motion:
+            out["online_imu_noise"] = {"inflation": self._online_imu_inflation,
+                                       "fits": self._imu_fits}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out

@@ -9,6 +9,8 @@ The body frame of the factors is the base frame; `imu_in_base` is GTSAM's body_P
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import gtsam
 import numpy as np
 
@@ -176,3 +178,87 @@ def integrate(
     f = pim.integrateMeasurement
     for a, w, d in zip(accel, gyro, dt.tolist(), strict=True):
         f(a, w, d)
+
+
+def preintegrate(
+    params: gtsam.PreintegrationCombinedParams, bias: gtsam.imuBias.ConstantBias,
+    gyro: np.ndarray, accel: np.ndarray, dt: np.ndarray,
+) -> gtsam.PreintegratedCombinedMeasurements:
+    """The zero-order-hold pieces (gyro rad/s, accel m/s^2, dt s) preintegrated from
+    `bias` (the factor's linearisation point)."""
+    pim = gtsam.PreintegratedCombinedMeasurements(params, bias)
+    integrate(pim, gyro, accel, dt)
+    return pim
+
+
+# log2 of the largest IMU noise inflation (on the `[imu]` densities and random walks) the
+# graph uses, 256: there the default accelerometer density (1.0 m/s^2/sqrt(Hz)) is the
+# constant-velocity prior's white-noise acceleration (`graph.motion_accel_density`) that
+# stands in for a missing IMU, so an IMU held looser says no more than no IMU. The online
+# graph starts there under `graph.imu_noise_inflation = "auto"` (`noise_fit`)
+IMU_INFLATION_MAX_LOG2 = 8.0
+
+
+@dataclass
+class ImuRecords:
+    """IMU factors of a graph, so that they can be rebuilt at another noise inflation: the
+    first keyframe k of each (the factor joins k and k + 1), its index in the graph, the
+    bias it was preintegrated from and its zero-order-hold pieces.
+
+    The preintegrated covariance is linear in the noise covariances it propagates: at an
+    inflation f of the densities and random walks it is f^2 N + I, N the part of the
+    configured noise and I the fixed integration covariance's (`covariance_parts`), so a
+    factor at any f is the recorded one with that covariance (`factors_at`), not a new
+    preintegration."""
+
+    k: list[int] = field(default_factory=list)
+    index: list[int] = field(default_factory=list)
+    bias: list[gtsam.imuBias.ConstantBias] = field(default_factory=list)
+    pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    # (N, I) of each factor by its k, computed on demand (shared by `reindexed` copies)
+    parts: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+    def add(self, k: int, index: int, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray,
+            accel: np.ndarray, dt: np.ndarray) -> None:
+        self.k.append(k)
+        self.index.append(index)
+        self.bias.append(bias)
+        self.pieces.append((gyro, accel, dt))
+
+    def drop_before(self, k: int) -> None:
+        """Forget the factors whose first keyframe is before `k`."""
+        n = int(np.searchsorted(self.k, k))
+        for kk in self.k[:n]:
+            self.parts.pop(kk, None)
+        del self.k[:n], self.index[:n], self.bias[:n], self.pieces[:n]
+
+    def reindexed(self, index: list[int]) -> ImuRecords:
+        """The same factors at other indices (of another graph), sharing `parts`."""
+        return ImuRecords(list(self.k), list(index), list(self.bias), list(self.pieces),
+                          self.parts)
+
+    def covariance_parts(self, cfg: ImuConfig, ext: Extrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """(N, I), each (n,15,15): the preintegrated covariance of every factor per unit
+        f^2 of the configured noise, and that of the integration covariance alone (two
+        preintegrations of each factor, at f = 1 and 2, once)."""
+        one, two = preintegration_params(cfg, ext, 1.0), preintegration_params(cfg, ext, 2.0)
+        for k, b, (gy, ac, dt) in zip(self.k, self.bias, self.pieces, strict=True):
+            if k not in self.parts:
+                c1 = preintegrate(one, b, gy, ac, dt).preintMeasCov()
+                n = (preintegrate(two, b, gy, ac, dt).preintMeasCov() - c1) / 3.0
+                self.parts[k] = (n, c1 - n)
+        if not self.k:
+            return np.zeros((0, 15, 15)), np.zeros((0, 15, 15))
+        return (np.array([self.parts[k][0] for k in self.k]),
+                np.array([self.parts[k][1] for k in self.k]))
+
+    def covariances(self, cfg: ImuConfig, ext: Extrinsics, inflation: float) -> np.ndarray:
+        """The factors' preintegrated covariances (n,15,15) at `inflation`."""
+        n, i = self.covariance_parts(cfg, ext)
+        return inflation**2 * n + i
+
+    def factors_at(self, graph: gtsam.NonlinearFactorGraph, cov: np.ndarray
+                   ) -> list[gtsam.NonlinearFactor]:
+        """The factors (read from `graph` at their indices) with covariances `cov`."""
+        return [graph.at(idx).cloneWithNewNoiseModel(gtsam.noiseModel.Gaussian.Covariance(c))
+                for idx, c in zip(self.index, cov, strict=True)]

@@ -21,7 +21,7 @@ import copy
 import functools
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import gtsam
@@ -39,7 +39,7 @@ from uwbfuse.graph.uwb import (
     nlos_state_factors,
     range_factor_keyed,
 )
-from uwbfuse.graph.wheel import between_factor, planar_covariance6
+from uwbfuse.graph.wheel import between_factor
 from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -597,8 +597,8 @@ def fitted_excess(fit: BatchResult, train: dict[str, np.ndarray], bias: np.ndarr
     return mu, max(var, SIGMA_LOS_MIN**2)
 
 
-def _run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-            max_iterations: int) -> gtsam.LevenbergMarquardtOptimizer:
+def run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
+           max_iterations: int) -> gtsam.LevenbergMarquardtOptimizer:
     """Levenberg-Marquardt over `graph` from `initial` at the batch's tolerances; the
     optimiser is returned after `optimize()` (its values, error and iteration count)."""
     params = gtsam.LevenbergMarquardtParams()
@@ -684,7 +684,7 @@ class _EmGraphs:
     def lm_round(self, vals: gtsam.Values, z: np.ndarray, sigma_los: float, g: np.ndarray,
                  frozen: bool, max_it: int | None = None) -> gtsam.Values:
         """One LM solve at NLOS responsibilities `g` from `vals`."""
-        opt = _run_lm(self.with_ranges(frozen, z, sigma_los, 1.0 - g, g), vals,
+        opt = run_lm(self.with_ranges(frozen, z, sigma_los, 1.0 - g, g), vals,
                       max_it or self.g_cfg.lm_max_iterations)
         self.iterations += opt.iterations()
         log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
@@ -1034,12 +1034,12 @@ def motion_fit_error(
     corrected by `scale`, LOS sigma `sigma` m, on its anchor's bias when `with_bias`) from
     `initial`: a negative log-likelihood (up to a constant) to compare motion factors
     built differently by; and the solution it is taken at (a start for the next)."""
-    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
-    opt = _run_lm(graph, initial, cfg.graph.lm_max_iterations)
+    graph = with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
+    opt = run_lm(graph, initial, cfg.graph.lm_max_iterations)
     return float(opt.error()), opt.values()
 
 
-def _with_robust_ranges(
+def with_robust_ranges(
     cfg: Config, base_graph: gtsam.NonlinearFactorGraph, rec: dict[str, np.ndarray],
     scale: np.ndarray | None, sigma: float, with_bias: bool,
 ) -> gtsam.NonlinearFactorGraph:
@@ -1054,135 +1054,3 @@ def _with_robust_ranges(
         graph.add(range_factor_keyed(X(k), L(aa), los_bias_key(aa, with_bias), zz, noise,
                                      gtsam.Pose3(gtsam.Rot3(), tag)))
     return graph
-
-
-# Wheel noise from the log (type-II maximum likelihood). The configured per-sample sigmas
-# (`wheel.sigma_v`, `wheel.sigma_omega`) are a guess; batch scales the translation and the
-# heading parts of every wheel factor's covariance by the factors (f_v, f_omega) that
-# maximise the Laplace evidence of the motion-fit graph (`motion_fit_error`'s). The search
-# runs on a grid of WHEEL_NOISE_STEP (log2) steps within 0 .. WHEEL_NOISE_MAX_LOG2, one
-# coordinate at a time, then the vertex of the parabola through each factor's best three
-# (docs/results.md, "Wheel noise from the log").
-WHEEL_NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
-# log2: factors within 1 .. 16 of the configured sigmas. One-sided: the configured sigma
-# also stands for the odometry's correlated errors (scale, slip) that the white-noise
-# evidence cannot see, so the log may only loosen it, never tighten it. An evidence still
-# rising at 16x is no odometry noise (encoders that far off the configuration are not
-# odometry) but another model's misfit the wheels are loosened to absorb (e.g. ranges
-# read long with the range scale off; docs/results.md): the fit then keeps 1
-WHEEL_NOISE_MAX_LOG2 = 4.0
-# log2: std of the log-normal hyperprior on each factor (the configured sigmas are right
-# within a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors'
-# 1 mm / 1 mrad floor reached, or ranges that outweigh the odometry) it stays near 1
-# instead of drifting to the search's edge on noise-level differences
-WHEEL_NOISE_PRIOR_LOG2 = 2.0
-# nats: the fitted factors replace the configured sigmas only where they raise the
-# log-evidence by this much, half the 5 % point of chi-square with 2 degrees of freedom
-# (a likelihood-ratio test of the two factors): a flat evidence (Labyrinth: 1 nat over
-# 1/4 .. 4) keeps the configuration rather than a vertex placed by noise
-WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
-
-
-def wheel_noise_log_evidence(
-    graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values, wheel: WheelRecords,
-    factors: tuple[float, float], max_iterations: int,
-) -> tuple[float, gtsam.Values]:
-    """Laplace log-evidence (nats, up to a constant) of `graph` with its wheel factors
-    (`wheel`'s, same indices, replaced in place) at their covariances scaled by
-    (f_v, f_v, f_omega) in (x, y, theta), and the LM solution it is taken at.
-
-    log p(z | f) ~ -E(x*) - 1/2 sum log det Sigma_wheel(f) - 1/2 log det H(x*): the graph
-    error at the optimum, the wheel factors' Gaussian normalisers and the Hessian's
-    log-determinant (`GaussianBayesNet.logDeterminant` of the eliminated linearisation is
-    1/2 log det H). Unlike the error alone it does not favour the loosest noise, and unlike
-    an in-sample chi-square it is not biased where the wheel factors alone hold the track
-    (a range outage: there the factors' residuals carry no information about their noise).
-    Huber kernels enter through their loss and their weights at x*."""
-    fv, fw = factors
-    c = np.array([fv, fv, fw])
-    scaled = [cov * np.outer(c, c) for cov in wheel.cov]
-    half_logdet_cov = sum(0.5 * float(np.linalg.slogdet(planar_covariance6(
-        cs, wheel.out_of_plane))[1]) for cs in scaled)
-    replace_wheel_factors([graph], wheel.k, wheel.delta, scaled, wheel.index,
-                          wheel.out_of_plane)
-    values = _run_lm(graph, initial, max_iterations).values()
-    half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
-    return -graph.error(values) - half_logdet_cov - half_logdet_h, values
-
-
-def fit_wheel_noise(
-    cfg: Config, base_graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-    rec: dict[str, np.ndarray], scale: np.ndarray | None, sigma: float, with_bias: bool,
-    wheel: WheelRecords, pose_index: Sequence[int] = (),
-) -> np.ndarray:
-    """(f_v, f_omega): the wheel noise factors of greatest posterior density, the Laplace
-    evidence (`wheel_noise_log_evidence`) over `base_graph` plus the recorded ranges as in
-    `motion_fit_error` times the hyperprior (WHEEL_NOISE_PRIOR_LOG2); (1, 1) without wheel
-    factors or ranges, when the graph is singular, or when the configured noise is not
-    rejected (WHEEL_NOISE_TEST_NATS).
-
-    The external-pose factors (`pose_index`, their indices in `base_graph`) are left out:
-    a localiser's wrong match is an offset held for seconds (the matcher locked onto the
-    wrong place), which a white-noise evidence explains as loose wheels. Without ranges
-    nothing absolute is left, so the configured noise stays."""
-    if not wheel.k or not len(rec["z"]):
-        return np.ones(2)
-    graph = _with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
-    for i in pose_index:
-        graph.remove(i)  # a null slot: every other factor keeps its index
-    n_it = cfg.graph.lm_max_iterations
-    seen: dict[tuple[float, float], float] = {}
-    start = {"values": initial}
-
-    def score(u: tuple[float, float]) -> float:
-        if u not in seen:
-            ev, vals = wheel_noise_log_evidence(graph, start["values"], wheel,
-                                                (2.0 ** u[0], 2.0 ** u[1]), n_it)
-            ev -= 0.5 * (u[0] ** 2 + u[1] ** 2) / WHEEL_NOISE_PRIOR_LOG2**2
-            seen[u] = ev
-            log.debug("wheel noise %s: %.2f", u, ev)
-            if ev >= max(seen.values()):
-                start["values"] = vals  # the next solve starts from the best so far
-        return seen[u]
-
-    best = (0.0, 0.0)
-    try:
-        score(best)
-        moved = True
-        while moved:
-            moved = False
-            for j in range(2):
-                for sign in (1.0, -1.0):
-                    while True:
-                        cand = list(best)
-                        cand[j] += sign * WHEEL_NOISE_STEP
-                        if not 0.0 <= cand[j] <= WHEEL_NOISE_MAX_LOG2 or \
-                                score((cand[0], cand[1])) <= seen[best]:
-                            break
-                        best = (cand[0], cand[1])
-                        moved = True
-    except RuntimeError as exc:  # indeterminant linear system: keep the configured noise
-        log.warning("batch wheel noise: not fitted (%s)", str(exc).splitlines()[0]
-                    if str(exc) else "error")
-        return np.ones(2)
-    if seen[best] - seen[(0.0, 0.0)] <= WHEEL_NOISE_TEST_NATS:
-        return np.ones(2)
-    if max(best) >= WHEEL_NOISE_MAX_LOG2:  # see WHEEL_NOISE_MAX_LOG2
-        log.warning("batch wheel noise: the evidence still rises at %gx the configured "
-                    "sigma, a misfit of another model (ranges) rather than wheel noise: "
-                    "the configured noise is kept", 2.0 ** WHEEL_NOISE_MAX_LOG2)
-        return np.ones(2)
-    out = np.array(best)
-    for j in range(2):  # the vertex of the parabola through the best three, per factor
-        lo, hi = list(best), list(best)
-        lo[j] -= WHEEL_NOISE_STEP
-        hi[j] += WHEEL_NOISE_STEP
-        e0, e2 = seen.get((lo[0], lo[1])), seen.get((hi[0], hi[1]))
-        if e0 is None or e2 is None:
-            continue
-        curv = e0 - 2.0 * seen[best] + e2
-        if curv < 0:
-            out[j] += 0.5 * WHEEL_NOISE_STEP * (e0 - e2) / curv
-    out = np.clip(out, 0.0, WHEEL_NOISE_MAX_LOG2)
-    log.debug("batch wheel noise: log2 factors %s -> %s (%d solves)", best, out, len(seen))
-    return 2.0 ** out
