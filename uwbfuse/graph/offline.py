@@ -48,11 +48,6 @@ log = logging.getLogger(__name__)
 
 # LM iterations of an intermediate EM round: only close enough for the next E-step
 EM_ROUND_LM_ITERATIONS = 6
-# online NLOS share from which batch EM starts NLOS-first (wheeled logs): a threshold
-# between scenarios, still to be replaced by a choice from the data (docs/results.md, "One
-# range-model choice": NLOS-first on every wheeled log, and a held-out choice between the
-# two starts, each cost a simulated scenario)
-HEAVY_NLOS_SHARE = 0.27
 # E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`): a stretch is
 # scored against another assignment when it explains the ranges by this many nats more
 BATCH_SEARCH = True
@@ -95,7 +90,7 @@ class BatchResult:
     rounds: int
     lm_iterations: int
     scale: np.ndarray
-    nlos_first: bool = False  # EM started NLOS-first (heavy NLOS, see `solve`)
+    nlos_first: bool = False  # EM started NLOS-first (wheeled logs, see `solve`)
     wheel_scale: np.ndarray | None = None  # (v, omega) odometry scale factors, None: no wheels
     # NLOS excess states (anchor index, segment, value m) of the mixture model, else None
     nlos_states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -323,21 +318,18 @@ def solve(
 
     EM from the online trajectory classifies each range against a trajectory that, where
     most anchors are blocked at once, has already been pulled towards the NLOS ranges: they
-    then fit as LOS and EM stays in that basin. Under heavy NLOS (the online pass called at
-    least HEAVY_NLOS_SHARE of the ranges NLOS) EM therefore starts NLOS-first: one LM round
-    with every range on its anchor's NLOS excess state only (no range committed to zero
-    bias), then the E-steps. Where NLOS is lighter the online trajectory is the better
-    start (NLOS-first on every wheeled log: batch's 95 % ellipses on room and factory hold
-    0.82 of the errors instead of 0.88). Where the anchors' constant offsets pass for NLOS,
-    the robust candidate wins the held-out choice. NLOS-first needs the odometry to hold the
-    track's shape while every range floats on its excess state: without wheels (a handheld
-    IMU + UWB log) EM starts from the online trajectory (ISAS-Walk1: 0.19 m online, 0.24 m
-    NLOS-first). `with_scale`: refine the per-anchor range scales, starting from `scale0`
-    (the online pass's).
+    then fit as LOS and EM stays in that basin. On a wheeled log EM therefore starts
+    NLOS-first: one LM round with every range on its anchor's NLOS excess state only (no
+    range committed to zero bias), then the E-steps. Where the anchors' constant offsets
+    pass for NLOS, the robust candidate wins the held-out choice. NLOS-first needs the
+    odometry to hold the track's shape while every range floats on its excess state:
+    without wheels (a handheld IMU + UWB log, or UWB alone) no motion factor holds it, so
+    EM starts from the online trajectory (a rule on the sensors present, not on the data's
+    figures; ISAS-Walk1: 0.19 m online, 0.24 m NLOS-first). `with_scale`: refine the
+    per-anchor range scales, starting from `scale0` (the online pass's).
     """
-    share = float(np.mean(rec["g_online"])) if len(rec["g_online"]) else 0.0
     problem = _Problem(cfg, base_graph, anchors, n_kf, t0_ns, wheel,
-                       nlos_first=cfg.graph.nlos and has_wheel and share >= HEAVY_NLOS_SHARE)
+                       nlos_first=cfg.graph.nlos and has_wheel)
     scale0 = scale0 if with_scale else None
     if not cfg.graph.nlos or len(rec["z"]) == 0:
         # no NLOS modelling asked for (the configured kernel and sigma), or no ranges at all
