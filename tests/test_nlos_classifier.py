@@ -23,6 +23,7 @@ from uwbfuse.io.reader import SKIP_BAD_POWER, read_log
 from uwbfuse.io.writer import UWB_FIELDS_METADATA, write_contract_log
 from uwbfuse.pipeline import estimate
 from uwbfuse.positioning.nlos_classifier import (
+    FORMAT_VERSION,
     POWER_FEATURES,
     RESIDUAL_FEATURES,
     RangePriors,
@@ -238,7 +239,7 @@ def _skops_dict(path: Path, **over: object) -> Path:
     rng = np.random.default_rng(0)
     x = rng.normal(size=(60, len(RESIDUAL_FEATURES)))
     forest = RandomForestClassifier(n_estimators=2).fit(x, (x[:, 0] > 0).astype(int))
-    obj = {"format": "uwbfuse-nlos-classifier", "version": 1,
+    obj = {"format": "uwbfuse-nlos-classifier", "version": FORMAT_VERSION,
            "features": list(RESIDUAL_FEATURES), "label_threshold_m": 0.15, "info": {},
            "forest": forest}
     obj.update(over)
@@ -247,7 +248,7 @@ def _skops_dict(path: Path, **over: object) -> Path:
 
 
 @pytest.mark.parametrize("kind", ["pickle", "random", "text", "other-skops", "features",
-                                  "version", "forest-mismatch"])
+                                  "version", "version-1", "forest-mismatch"])
 def test_model_loading_safety(tmp_path: Path, kind: str,
                               capsys: pytest.CaptureFixture) -> None:
     """test that a file that is not a train-nlos model (a pickle, random bytes, another
@@ -268,6 +269,8 @@ def test_model_loading_safety(tmp_path: Path, kind: str,
         _skops_dict(p, features=["residual", "colour", "smell", "a", "b", "c", "d"])
     elif kind == "version":
         _skops_dict(p, version=99)
+    elif kind == "version-1":  # before the wheel-track reference: its features meant else
+        _skops_dict(p, version=1)
     else:
         _skops_dict(p, features=list(RESIDUAL_FEATURES[:3]))
     with pytest.raises(ConfigError):
@@ -365,3 +368,4 @@ def test_power_change_and_first_path_excess() -> None:
     assert jump[i[1]] == pytest.approx(gap[i[1]] - gap[i[0]])
     fpx = x[:, names.index("fp_excess_db")]
     assert np.median(fpx[s.nlos]) < np.median(fpx[~s.nlos]) - 3.0
+

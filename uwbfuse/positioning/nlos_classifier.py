@@ -17,14 +17,16 @@ Features, per range, all causal (from the range itself and what came before it):
   (total minus first-path power, dB; Decawave APS006: about 6 dB and more suggests NLOS)
   and its running median `rx_minus_fp_median` as `residual_median`.
 
-The causal reference (the same at training and at run time, whatever the estimator): the
-robust (Huber) multilateration fixes of the epochs that ended before the range, with the
-geometry the `wls` method uses (2-D at the tag height for wheeled logs; epochs as `wls`
-groups them), a constant-velocity line fitted to the last `TRACK_FIXES` of them and
-evaluated at the range's stamp. It is an estimator-independent stand-in for "the current
-prediction", so a model trained once serves `wls`, `ekf`, `ukf` and the graph alike. Where no fix is
-younger than `MAX_REFERENCE_AGE_S` the position features are NaN (the forest has learnt
-where missing values go).
+The causal reference (the same at training and at run time, whatever the estimator): on
+wheeled logs, `wheel_reference`: the wheel track placed in the map by a robust fit to the
+ranges of the last seconds, the range's own anchor left out. Elsewhere (and on a wheeled
+log before its first fit) the robust (Huber) multilateration fixes of the epochs that ended
+before the range, with the geometry the `wls` method uses (2-D at the tag height for
+wheeled logs; epochs as `wls` groups them), a constant-velocity line fitted to the last
+`TRACK_FIXES` of them and evaluated at the range's stamp. It is an estimator-independent
+stand-in for "the current prediction", so a model trained once serves `wls`, `ekf`, `ukf`
+and the graph alike. Where no fix is younger than `MAX_REFERENCE_AGE_S` the position
+features are NaN (the forest has learnt where missing values go).
 
 Labels: a range is NLOS when |measured - true range| > `label_threshold` (default
 `LABEL_THRESHOLD_M`), the true range from the ground-truth pose and `[extrinsics]
@@ -57,14 +59,15 @@ from uwbfuse.positioning.multilateration import (
     group_epochs,
     multilaterate,
 )
-from uwbfuse.streams import NS_PER_S, AnchorMap, RangeStream, SensorLog
+from uwbfuse.positioning.wheel_reference import wheel_reference
+from uwbfuse.streams import NS_PER_S, AnchorMap, RangeStream, SensorLog, WheelStream
 
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
 FORMAT = "uwbfuse-nlos-classifier"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: wheeled logs' residuals against `wheel_reference` (1: the CV line)
 # the only non-primitive type a forest's skops file holds (numpy arrays and the estimator
 # classes of scikit-learn are trusted by skops itself)
 TRUSTED_TYPES = ("sklearn.tree._tree.Tree",)
@@ -102,9 +105,9 @@ MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s
 # ------------------------------------------------------------------------------ features
 def _reference_fixes(
     ranges: RangeStream, anchors: AnchorMap, config: Config, planar: bool
-) -> tuple[NDArray[np.int64], F64, NDArray[np.bool_], F64]:
-    """Epoch times (K,), robust fixes (K,3) of the tag antenna (map frame), ok (K,), and
-    residual RMS (K,) m."""
+) -> tuple[NDArray[np.int64], F64, NDArray[np.bool_], F64, float]:
+    """Epoch times (K,), robust fixes (K,3) of the tag antenna (map frame), ok (K,),
+    residual RMS (K,) m, and the tag height of 2-D fixes (m)."""
     wls = config.wls
     project = wls.height_projection == "on" or (wls.height_projection == "auto" and planar)
     if wls.tag_height != "auto":
@@ -119,11 +122,11 @@ def _reference_fixes(
     ep = epochs_by_window(ranges.t_ns, window)
     grid, _ = group_epochs(ranges.t_ns, ranges.anchor, ranges.range, len(anchors), ep, window)
     if not len(ep):
-        return ep, np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0)
+        return ep, np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0), tag_z
     fx = multilaterate(anchors.positions, grid, dim=dim, tag_z=tag_z,
                        sigma=config.uwb.sigma, kernel=RobustKernel.HUBER, threshold=1.345)
     enough = np.count_nonzero(np.isfinite(grid), axis=1) >= dim + 1
-    return ep, fx.position, fx.ok & enough, fx.residual_rms
+    return ep, fx.position, fx.ok & enough, fx.residual_rms, tag_z
 
 
 def _track_prediction(
@@ -183,11 +186,13 @@ def _running_median(v: F64, t: NDArray[np.int64], a: NDArray[np.int32], k: int) 
 
 
 def range_features(
-    ranges: RangeStream, anchors: AnchorMap, config: Config, planar: bool
+    ranges: RangeStream, anchors: AnchorMap, config: Config, planar: bool,
+    wheel: WheelStream | None = None,
 ) -> tuple[F64, tuple[str, ...]]:
     """Features (N,F) of every range and their names (`RESIDUAL_FEATURES`, then
     `POWER_FEATURES` when the stream carries both powers). `planar`: a wheeled log (the
-    reference fixes are 2-D at the tag height, as `wls` makes them)."""
+    reference fixes are 2-D at the tag height, as `wls` makes them); with `wheel` (a planar
+    log's odometry) the reference is `wheel_reference`'s where it has one."""
     n = len(ranges)
     names = RESIDUAL_FEATURES
     with_power = ranges.rssi_dbm is not None and ranges.first_path_dbm is not None
@@ -197,7 +202,7 @@ def range_features(
     if n == 0:
         return x, names
     t, a, z = ranges.t_ns, ranges.anchor, ranges.range
-    ep, pos, ok, rms = _reference_fixes(ranges, anchors, config, planar)
+    ep, pos, ok, rms, tag_z = _reference_fixes(ranges, anchors, config, planar)
     # the latest usable fix of an epoch that ended before each range
     good = np.flatnonzero(ok)
     j = np.searchsorted(ep[good], t, side="left") - 1 if len(good) else np.full(n, -1)
@@ -205,6 +210,15 @@ def range_features(
     k = good[np.maximum(j, 0)] if len(good) else np.zeros(n, dtype=np.int64)
     has &= (t - ep[k]) <= round(MAX_REFERENCE_AGE_S * NS_PER_S)
     ref = _track_prediction(t, ep, pos, good, j, has)
+    if wheel is not None and planar and len(wheel) and len(ep):
+        dz = anchors.positions[a, 2] - tag_z
+        d2 = np.sqrt(np.maximum(z * z - dz * dz, 0.0))  # horizontal distance, m
+        wref, wok = wheel_reference(
+            t, a, d2, anchors.positions[:, :2], wheel,
+            np.asarray(config.extrinsics.tag_in_base[:2], np.float64), ep, pos[:, :2], ok,
+            config.uwb.sigma)
+        ref[wok] = np.column_stack([wref[wok], np.full(int(wok.sum()), tag_z)])
+        has |= wok
     ap = anchors.positions[a]
     d = ap - ref
     pred = np.linalg.norm(d, axis=1)
@@ -242,7 +256,7 @@ def log_features(log: SensorLog, config: Config) -> tuple[F64, tuple[str, ...]]:
     if log.ranges is None or log.anchors is None:
         raise EstimatorError(f"{log.source}: the NLOS classifier needs ranges and an anchor "
                              "map")
-    return range_features(log.ranges, log.anchors, config, log.wheel is not None)
+    return range_features(log.ranges, log.anchors, config, log.wheel is not None, log.wheel)
 
 
 def range_labels(log: SensorLog, config: Config, threshold: float = LABEL_THRESHOLD_M
