@@ -226,11 +226,11 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     # one keyframe period past the first data: the backdated start is clamped to it
     back_s += 1.0 / g.keyframe_rate
     update: dict[str, Any] = {"start_backdate": back_s}
-    if method is Method.ISAM2_SMOOTHED:
-        # isam2's own online pass classifies the backdated ranges against the still-poor
-        # early track (labyrinth: 41 % NLOS, 24 % without the backdate), and a mixture fitted
-        # from those classes scores well held-out but places the track worse (labyrinth
-        # 0.092 m, robust 0.046 m): the final smoothing keeps the first pass's choice
+    if method is Method.ISAM2_SMOOTHED and not (log.wheel is not None and len(log.wheel)):
+        # without wheels the final smoothing's EM starts from isam2's own online classes,
+        # which judge the backdated ranges against the still-poor early track: it keeps the
+        # first pass's choice. With wheels EM starts NLOS-first (`offline.solve`), free of
+        # those classes, and chooses again like batch (room-static: a long still stretch).
         update["range_model"] = chosen
     return config.model_copy(update={"graph": g.model_copy(update=update)})
 
