@@ -288,3 +288,26 @@ def test_imu_rotation_between_turns_the_bias_free_gyro_into_the_base_frame():
     half = buf.rotation_between(0, int(1e9), bias, r_bs)
     np.testing.assert_allclose(half @ buf.rotation_between(int(1e9), int(2e9), bias, r_bs),
                                rot, atol=1e-9)
+
+
+def test_classifier_weight_follows_how_well_the_classifier_predicts_the_residuals() -> None:
+    """Test that the NLOS classifier's weight in batch EM (`offline.classifier_weight`) is
+    the slope of the residual responsibilities on its log-odds, within 0..1: a classifier
+    calibrated to the residuals' classes keeps its log-odds (~1), one at chance on this log
+    (a forest from another site) gets ~0, one that ranks them backwards 0."""
+    from uwbfuse.graph.offline import classifier_weight
+
+    rng = np.random.default_rng(3)
+    nlos = rng.random(4000) < 0.3
+    # the residuals' responsibilities: mostly sure, a few in between
+    g = np.clip(np.where(nlos, 0.95, 0.05) + rng.normal(0.0, 0.03, nlos.size), 0.0, 1.0)
+    # a calibrated classifier: log-odds of 0.8 / 0.2 around its base rate, some spread
+    informative = np.where(nlos, 1.4, -1.4) + rng.normal(0.0, 0.5, nlos.size)
+    w_informative = classifier_weight(g, informative)
+    assert w_informative == 1.0  # its log-odds understate what the residuals show: capped
+    # the same log-odds 4x overconfident: a quarter of the unscaled slope (about 2 here,
+    # the residuals being surer than the classifier)
+    assert 0.3 < classifier_weight(g, 4.0 * informative) < 0.8
+    chance = rng.normal(0.0, 1.5, nlos.size)
+    assert classifier_weight(g, chance) < 0.05
+    assert classifier_weight(g, -informative) == 0.0

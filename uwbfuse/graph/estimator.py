@@ -998,6 +998,8 @@ class GraphEstimator(EstimatorBase):
                         "range_model": self._batch.range_model,
                         "heldout_log_score": self._batch.heldout_score,
                         "wall_s": self._batch_wall}
+            if self._batch.classifier_weight is not None:
+                out[key]["nlos_classifier_weight"] = round(self._batch.classifier_weight, 3)
             if self._wheel_offset_s is not None:
                 out[key]["wheel_time_offset_s"] = self._wheel_offset_s
             if self._wheel_noise is not None:

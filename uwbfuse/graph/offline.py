@@ -48,6 +48,8 @@ log = logging.getLogger(__name__)
 
 # LM iterations of an intermediate EM round: only close enough for the next E-step
 EM_ROUND_LM_ITERATIONS = 6
+CLASSIFIER_FIT_ITERATIONS = 25  # Newton steps of the two-parameter logistic fit
+CLASSIFIER_FIT_RIDGE = 1e-6  # keeps the fit's Hessian invertible when the log-odds are constant
 # E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`): a stretch is
 # scored against another assignment when it explains the ranges by this many nats more
 BATCH_SEARCH = True
@@ -97,6 +99,8 @@ class BatchResult:
     range_model: str = "mixture"  # the range error model fitted: mixture or robust
     # mean held-out log score (nats per range) of each candidate, when `auto` chose
     heldout_score: dict[str, float] | None = None
+    # weight (0..1) of the NLOS classifier's log-odds at EM's last E-step, None: none given
+    classifier_weight: float | None = None
     # builds, on demand (only the fit that is kept needs it), the graph whose marginals are
     # the poses' covariance and the LOS/NLOS assignments' spread of each keyframe's
     # position in map x, y (n_kf,2,2, m^2, `hypothesis_shift_moments`); None when
@@ -616,6 +620,26 @@ def _smooth_per_anchor(ll_los: np.ndarray, ll_nlos: np.ndarray, anchor: np.ndarr
     return gs[inv]
 
 
+def classifier_weight(g_resid: np.ndarray, evidence: np.ndarray) -> float:
+    """The weight (0..1) of the learned classifier's log-odds `evidence` (nats, per range)
+    in EM's E-step: the slope of the logistic regression (with intercept) of the ranges'
+    NLOS responsibilities from the residuals alone, `g_resid` (soft labels), on the
+    log-odds. A classifier that ranks this log's ranges as its residuals do keeps its
+    log-odds (1: taken at face value, the most it gets); one at chance on this log (a
+    forest trained on other sites) gets ~0 and leaves EM to the residuals."""
+    x = np.column_stack([np.ones(len(evidence)), evidence])
+    beta = np.zeros(2)
+    for _ in range(CLASSIFIER_FIT_ITERATIONS):
+        p = 1.0 / (1.0 + np.exp(-np.clip(x @ beta, -30.0, 30.0)))
+        grad = x.T @ (p - g_resid)
+        hess = (x * (p * (1.0 - p))[:, None]).T @ x + CLASSIFIER_FIT_RIDGE * np.eye(2)
+        step = np.linalg.solve(hess, grad)
+        beta -= step
+        if np.max(np.abs(step)) < 1e-6:
+            break
+    return float(np.clip(beta[1], 0.0, 1.0))
+
+
 def _initial_state_values(states: _NlosStates, st_idx: np.ndarray, g: np.ndarray,
                           r_los: np.ndarray, bias: np.ndarray, mu_nlos: float) -> np.ndarray:
     """Each NLOS state's start (m, over the range's anchor offset `bias`): the
@@ -788,6 +812,7 @@ class _EmRun:
             for a in range(n_anchor):
                 self.values.update(D(a), 0.0)
         self.done = 0
+        self.classifier_weight: float | None = None  # set by each E-step with a classifier
         self.sig_l = mix.sigma_los if g_cfg.nlos else self.uwb.sigma
         factors = _RangeFactors(rec, a_r, self.uwb, with_bias,
                                 None if states is None or st_idx is None
@@ -841,8 +866,11 @@ class _EmRun:
             ll_l, ll_n = _search_windows(self.values, self.rec, self.anchors, self.n_kf,
                                          self.a_r, self.r_los, g_cur, mix, self.e_var, ll_l,
                                          ll_n)
-        if it == 0:  # the learned classifier's log-odds start EM (patent S6: then the
-            ll_n = ll_n + self.rec["evidence"]  # fused track re-estimates the NLOS ranges)
+        evidence = self.rec["evidence"]
+        if np.any(evidence):  # the learned classifier's log-odds, at the weight the log gives
+            g_resid = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix)
+            self.classifier_weight = classifier_weight(g_resid, evidence)
+            ll_n = ll_n + self.classifier_weight * evidence
         self.g = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix)
         mix.m_step(self.r_los, r_nlos, self.g, self.prior)
         self.sig_l = mix.sigma_los
@@ -900,6 +928,7 @@ class _EmRun:
                            else self.wheel_scale.applied.copy(),
                            nlos_states=nlos_out,
                            range_model="mixture" if states is not None else "robust",
+                           classifier_weight=self.classifier_weight,
                            marginals=marginals
                            if self.g_cfg.marginal_covariances is not False else None)
 
