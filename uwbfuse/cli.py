@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from uwbfuse.constants import LABEL_THRESHOLD_M
 from uwbfuse.errors import UwbfuseError
-from uwbfuse.positioning.nlos_classifier import LABEL_THRESHOLD_M
 
 if TYPE_CHECKING:
     from uwbfuse.progress import ProgressBar

@@ -20,6 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from uwbfuse.constants import MAX_EPOCHS
 from uwbfuse.errors import EstimatorError
 from uwbfuse.methods import Method  # noqa: F401  (re-exported: the public name's old home)
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, PoseStream, SensorLog
@@ -143,9 +144,6 @@ class StreamingResult:
     range_classes: RangeClasses | None = None
 
 
-# Epochs the output grid may have: 10^7 is 11.6 days at 10 Hz (each epoch costs a step and
-# a pose, about 1 kB); more means stamps on different clocks, not a long log
-MAX_EPOCHS = 10_000_000
 
 
 def output_epochs(log: SensorLog, rate_hz: float) -> np.ndarray:

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import FORGET_EVERY_S
 from uwbfuse.errors import AnchorMapError, UwbfuseError
 from uwbfuse.io.reader import (
     MAX_ACCEL_M_S2,
@@ -58,7 +59,6 @@ from uwbfuse.streams import NS_PER_S, AnchorMap
 log = logging.getLogger(__name__)
 
 SKIP_LATE = "late sample (stamped at or before an epoch already processed)"
-FORGET_EVERY_S = 10.0  # s of epochs between the estimator's `forget_before` calls
 SENSORS = ("imu", "wheel", "uwb")
 
 

@@ -46,21 +46,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.config import Config, NlosConfig
+from uwbfuse.constants import (
+    JUMP_MAX_GAP_NS,
+    JUMP_MAX_M,
+    LOG_OUTLIER,
+    MAX_LOS_STD,
+    MIN_LOS_STD,
+    SIGMA_LOS_MIN,
+    SIGMA_NLOS_MIN,
+)
 from uwbfuse.streams import AnchorMap
 
 F64 = NDArray[np.float64]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
-# floors of the state model's M-step, m: below them a fit is the one-step prediction's
-# luck, not the radio (a DW1000 reads about 2 cm in LOS)
-SIGMA_LOS_MIN = 0.02
-SIGMA_NLOS_MIN = 0.03
-MIN_LOS_STD = 0.005  # floor on the per-range LOS std used for probabilities, m
-MAX_LOS_STD = 1.0  # m: a fitted LOS std beyond this is no UWB radio's (Plaza's read 0.3-0.5)
-JUMP_MAX_GAP_NS = 500_000_000  # residual jumps: consecutive ranges at most this far apart
-JUMP_MAX_M = 1.0  # a residual change beyond this is a gross outlier, not a jump
-# gross-outlier floor of each component's likelihood: 2 % spread over 20 m
-LOG_OUTLIER = math.log(0.02 / 20.0)
 
 
 @dataclass(frozen=True)

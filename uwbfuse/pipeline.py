@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import COLLINEAR_RMS_M
 from uwbfuse.errors import AnchorMapError, EstimatorError, TrajectoryFileError
 from uwbfuse.estimator import Method, RangeClasses, output_epochs, run_streaming
 from uwbfuse.methods import REQUIRED_STREAMS, WITHOUT_RANGES, make_estimator
@@ -93,7 +94,6 @@ def check_inputs(log: SensorLog, method: Method, config: Config) -> frozenset[st
     return streams
 
 
-COLLINEAR_RMS_M = 0.1  # heard anchors closer than this (RMS) to one line in x, y
 
 
 def _never_initialised(log: SensorLog, method: Method) -> str:

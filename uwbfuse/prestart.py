@@ -27,25 +27,11 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import DISAGREE_M, DROP_AFTER_EPOCHS, PROVISIONAL_GRACE_S, STILL_WHEEL_GAP_NS
 from uwbfuse.estimator import Estimator, EstimatorBase, PoseEstimate, RangeClasses
 from uwbfuse.methods import Method, make_estimator
 from uwbfuse.positioning.start import wheels_still
 from uwbfuse.streams import NS_PER_S, UNKNOWN_VARIANCE, AnchorMap, PoseStream
-
-DROP_AFTER_EPOCHS = 20
-"""The fallback is dropped once the primary has answered this many epochs in a row (2 s
-at 10 Hz: past the start's first updates, after which a started method does not fall
-silent again short of an outage, which it bridges by its own prediction)."""
-DISAGREE_M = 1.0
-"""Horizontal distance, m, between the fallback's fix and a provisional one that
-discredits the fallback: several times a LOS fix's error, below a biased fix's (a radio
-scale of 7 % at 15 m is 1 m)."""
-PROVISIONAL_GRACE_S = 5.0
-"""Longest hold, s, of the last provisional position in place of a discredited fallback:
-the time a vehicle at walking speed needs for the couple of metres the start solve needs."""
-STILL_WHEEL_GAP_NS = 200_000_000
-"""The wheels count as saying "still" at an epoch only when their last sample is this
-recent (ns; 10 samples at the usual 50 Hz): older, the vehicle may have moved since."""
 
 
 class PreStart(EstimatorBase):

@@ -3,7 +3,7 @@
 
 Each range of each log is labelled from ground truth (`--gt` TUM files, one per log, else
 the log's ground-truth topic): NLOS when |measured - true range| exceeds the label
-threshold (`nlos_classifier.LABEL_THRESHOLD_M`). The features are
+threshold (`constants.LABEL_THRESHOLD_M`). The features are
 `nlos_classifier.range_features`, computed as at run time; the signal-quality features are
 used when every log carries them. The model is written as a skops file that `[nlos]
 classifier` loads.
@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from uwbfuse.config import load_config
+from uwbfuse.constants import LABEL_THRESHOLD_M
 from uwbfuse.errors import ConfigError, EstimatorError
 from uwbfuse.positioning.nlos_classifier import (
-    LABEL_THRESHOLD_M,
     NlosClassifier,
     log_features,
     range_labels,

@@ -47,31 +47,18 @@ from dataclasses import replace
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.filters.models import F64, gate_threshold
-from uwbfuse.nlos import (
+from uwbfuse.constants import (
+    MEMORY_ROWS,
     MIN_LOS_STD,
-    NlosModel,
-    NlosParams,
-    fit_nlos_mixture,
-    nlos_probability,
+    MIN_SHARE,
+    P_BOUNDS,
+    PRIOR_RANGES,
+    PRIOR_ROWS,
+    REFIT_EVERY,
+    WINDOW,
 )
-
-#: Accepted ranges between two EM refits of the mixture.
-REFIT_EVERY = 200
-#: Accepted ranges (the newest) each refit uses.
-WINDOW = 4000
-#: Weight of the configured per-range model in each refit, in ranges.
-PRIOR_RANGES = 200.0
-#: Weight of a configured wheel/planar variance, in measurement rows, and the memory of
-#: the running estimate (rows; exponential forgetting).
-PRIOR_ROWS = 200.0
-MEMORY_ROWS = 2000.0
-#: Floor of a matched variance as a share of the configured one: sampling noise can drive
-#: E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid.
-MIN_SHARE = 0.01
-#: Bounds of an anchor's prior NLOS probability (the chain never becomes certain).
-P_BOUNDS = (0.01, 0.99)
-
+from uwbfuse.filters.models import F64, gate_threshold
+from uwbfuse.nlos import NlosModel, NlosParams, fit_nlos_mixture, nlos_probability
 
 _SQRT_2PI = math.sqrt(2 * math.pi)
 
@@ -151,8 +138,8 @@ class RangeNoise:
     def set_start_scale(self, scale: float, refine: bool) -> None:
         """The start solve's common range scale: applied at once, and the prior of the fit.
         `refine`: fit it to the ranges from then on; only where the tag height is held (a
-        planar vehicle): a tag free in 3-D trades height for scale (ISAS-Walk1: the fit went
-        to 0.982 with 2-D ATE 0.167 -> 0.196 m)."""
+        planar vehicle): a tag free in 3-D trades height for scale (docs/results.md,
+        "Constants in one module")."""
         self.scale = self._scale0 = float(scale)
         self.refine_scale = refine
 

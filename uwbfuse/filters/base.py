@@ -25,6 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import MAX_WINDOW_NS, REPEAT_NS
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.adaptive_noise import RangeNoise
@@ -92,7 +93,8 @@ def default_initialiser(
     from uwbfuse.positioning.pose_start import PoseStartInitialiser
 
     # the filters take the wheel-track start only where multilateration has no fix at all
-    # (Plaza1): on Labyrinth, where it has them, it moved the EKF 0.120 -> 0.163 m
+    # (fixes start the filter better where there are any: docs/results.md, "Constants in one
+    # module")
     return PoseStartInitialiser(Initialiser(config, anchors, streams,
                                             corrects_heading=corrects_heading),
                                 config, anchors, streams, only_without_fixes=True)
@@ -115,13 +117,6 @@ class _Pending:
         return out
 
 
-#: Longest stretch of time handled as one predict/update window, ns.
-MAX_WINDOW_NS = 100_000_000
-#: A range bit-identical to the previous range of its anchor within this time is a
-#: re-publication of the same measurement (some RTLS devices send every ranging epoch twice,
-#: about 50 ms apart, with new stamps: ISAS-Walk1), not a new one; it is dropped so that it
-#: does not count twice. Independent noisy ranges practically never repeat to the bit.
-REPEAT_NS = 150_000_000
 
 
 class StreamingFilter(EstimatorBase):

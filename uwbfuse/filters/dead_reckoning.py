@@ -50,6 +50,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config
+from uwbfuse.constants import (
+    MAX_EXTRAPOLATION_S,
+    MEAN_SHIFT_FLOOR,
+    MEAN_SHIFT_SIGMAS,
+    MOTION_WINDOW_S,
+    ONSET_GUARD_S,
+)
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.models import pose_covariance, unicycle_transition
@@ -58,22 +65,10 @@ from uwbfuse.streams import F64, NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
-MAX_EXTRAPOLATION_S = 0.5
-"""Longest span (s) a pose is extrapolated past the last sample; beyond it the pose holds."""
 
-MOTION_WINDOW_S = 0.2
-"""Window (s) of the accel std / mean-shift motion test."""
 
-ONSET_GUARD_S = 1.0
-"""The still part ends this long before the first sample that shows motion: a gentle
-(jerk-limited) start reaches the detection threshold well after it begins, and samples of
-the start folded into the still means would tilt the levelling and miss velocity."""
 
-MEAN_SHIFT_SIGMAS = 5.0
-"""A window mean this many standard errors (noise of the still samples) away from the still
-mean shows motion; at least MEAN_SHIFT_FLOOR, at most `init.standstill_accel_std_max`."""
 
-MEAN_SHIFT_FLOOR = 0.02  # m/s^2
 
 _FOLD_KEEP_NS = 3 * NS_PER_S  # a long still start keeps its last 3 s buffered (> guard + window)
 

@@ -69,6 +69,16 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import (
+    INFLATE_CAP_POS,
+    INFLATE_CAP_VEL,
+    MOVING_START_SPEED,
+    MOVING_VELOCITY_SIGMA,
+    STILL_VELOCITY_SIGMA,
+    TILT_SIGMA_MOVING,
+    TILT_SIGMA_STILL,
+    Z_SIGMA_MIN,
+)
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
 from uwbfuse.filters.adaptive_noise import (
@@ -120,22 +130,6 @@ from uwbfuse.streams import AnchorMap
 
 E3 = np.array([0.0, 0.0, 1.0])
 
-#: Initial velocity std when the start is not still, m/s.
-MOVING_VELOCITY_SIGMA = 0.5
-#: Initial velocity std at a still start, m/s.
-STILL_VELOCITY_SIGMA = 0.02
-#: Start speed (m/s) above which the start counts as moving even when the log began still
-#: (`InitialState.still` says the log *began* with a standstill; the start state may come
-#: seconds later, from a walk: ISAS-Walk1 starts at 1.1 m/s).
-MOVING_START_SPEED = 0.05
-#: Initial roll/pitch std, rad (levelled from gravity when still; a guess otherwise).
-TILT_SIGMA_STILL = 0.02
-TILT_SIGMA_MOVING = 0.05
-#: Largest position variance (m^2) and velocity variance ((m/s)^2) after recoveries.
-INFLATE_CAP_POS = 100.0
-INFLATE_CAP_VEL = 25.0
-#: Smallest initial height std, m.
-Z_SIGMA_MIN = 0.3
 
 
 def initial_covariance(state: InitialStateLike, config: Config) -> F64:

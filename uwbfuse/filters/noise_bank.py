@@ -23,25 +23,15 @@ the first seconds of motion the bank costs about one filter.
 from __future__ import annotations
 
 import copy
-import math
 from typing import Any
 
 import numpy as np
 
+from uwbfuse.constants import DROP_NATS, FACTORS
 from uwbfuse.estimator import EstimatorBase, PoseEstimate
 from uwbfuse.filters.ekf import ErrorStateEkf
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.streams import PoseStream
-
-#: Process-noise factors (on the stds) relative to the configured inflation: a
-#: log-uniform grid of ratio sqrt(10) over one decade upwards. The configured figure is
-#: the floor: below it the wheel rows' likelihood asks for the datasheet noise on
-#: simulated logs (whose IMU follows it exactly), and the filter then trusts its IMU
-#: through NLOS stretches more than their ranges allow (docs/results.md).
-FACTORS = (1.0, math.sqrt(10.0), 10.0)
-#: Likelihood deficit (nats) at which a member is dropped: posterior odds of 1e-4 against
-#: it under the flat prior (a member that far behind practically never leads again).
-DROP_NATS = math.log(1e4)
 
 
 class ProcessNoiseBank(EstimatorBase):

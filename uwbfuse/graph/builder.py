@@ -28,17 +28,31 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config, GraphConfig
+from uwbfuse.constants import (
+    ANCHOR_SIGMA,
+    IMU_INFLATION_MAX_LOG2,
+    LOG_OUTLIER,
+    LOS_SIGMA_PRIOR_RANGES,
+    MAX_SCALE,
+    MIN_PREQUENTIAL_RANGES,
+    MIN_WEIGHT,
+    NORMAL_MAD_SCALE,
+    ONLINE_ANCHOR_BIAS_SIGMA,
+    ONLINE_COMMON_BIAS_SIGMA,
+    ONLINE_MAX_START_SPEED,
+    PREQUENTIAL_WINDOW,
+    PREQUENTIAL_Z,
+    REPEAT_WINDOW_NS,
+    SCALE_BLOCK,
+    SIGMA_LOS_MIN,
+    VIRTUAL_BIAS_SIGMA,
+    WHEEL_HUBER_K,
+)
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
-from uwbfuse.graph.uwb import (
-    MIN_WEIGHT,
-    huber_log_density,
-    los_bias_key,
-    nlos_state_factors,
-    range_factor,
-)
+from uwbfuse.graph.uwb import huber_log_density, los_bias_key, nlos_state_factors, range_factor
 from uwbfuse.graph.wheel import (
     WheelTrack,
     between_factor,
@@ -46,14 +60,7 @@ from uwbfuse.graph.wheel import (
     se2_between,
     se2_to_pose3,
 )
-from uwbfuse.nlos import (
-    LOG_OUTLIER,
-    SIGMA_LOS_MIN,
-    NlosModel,
-    hmm_filter,
-    jump_log_likelihoods,
-    residual_jumps_by_anchor,
-)
+from uwbfuse.nlos import NlosModel, hmm_filter, jump_log_likelihoods, residual_jumps_by_anchor
 from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.start import planar_height
@@ -61,28 +68,6 @@ from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
 
-ANCHOR_SIGMA = 1e-3  # m: anchors are known; a tight prior keeps them fixed
-WHEEL_HUBER_K = 1.345  # Huber threshold of the wheel factor (whitened), against slip
-ONLINE_COMMON_BIAS_SIGMA = 0.05  # m: prior std of the common range bias in the online graph
-# m: prior std of each anchor's range bias around the common one in the online graph (the
-# batch graph gets `graph.range_bias_anchor_sigma`): a few seconds of ranges barely
-# separate an offset from the position, and a loosely held one wanders
-ONLINE_ANCHOR_BIAS_SIGMA = 0.02
-MAX_START_SPEED = 3.0  # m/s: a start state faster than this is not trusted
-SCALE_BLOCK = 20  # ranges of an anchor per online scale update
-MAX_SCALE = 0.2  # bound on a range scale error
-# ranges the configured LOS sigma counts as in the online LOS sigma estimates, which come
-# from the MAD of the ranges classified LOS (`robust_los_sigma`: misclassified NLOS ranges
-# would inflate an RMS)
-LOS_SIGMA_PRIOR_RANGES = 20.0
-REPEAT_WINDOW_NS = 150_000_000  # an identical range of the same anchor within this is a copy
-PREQUENTIAL_WINDOW = 1000  # one-step residuals the online robust sigma is the MAD of
-# ranges before the online prequential scores start (the robust sigma needs them), and
-# scored ranges before their paired test may decide
-MIN_PREQUENTIAL_RANGES = 100
-# the online range model changes when the other's mean score advantage per range is this
-# many standard errors from zero (a one-sided paired test at about 0.1 %)
-PREQUENTIAL_Z = 3.0
 
 
 @dataclass
@@ -262,8 +247,6 @@ class ResidualWindow:
         return rr, gg
 
 
-# MAD -> standard deviation of a normal distribution (1 / Phi^-1(3/4))
-NORMAL_MAD_SCALE = 1.482602218505602
 
 
 def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> float | None:
@@ -324,7 +307,7 @@ class GraphBuilder:
         # without ranges nothing absolute tells the noise: the configured one
         setting = self.g.imu_noise_inflation
         fit = setting == "auto" and "imu" in streams and "uwb" in streams and len(anchors) > 0
-        self.imu_inflation = (2.0 ** imu_mod.IMU_INFLATION_MAX_LOG2 if fit
+        self.imu_inflation = (2.0 ** IMU_INFLATION_MAX_LOG2 if fit
                               else 1.0 if setting == "auto" else float(setting))
         self.pim_params = self._preintegration_params()
         # the newest keyframes for the online IMU noise fit (`recent_s` s of them), or None
@@ -662,7 +645,7 @@ class GraphBuilder:
         if self.has_imu:
             # `still` says the log *started* still; the state may be taken while moving
             speed = float(np.linalg.norm(self.vel))
-            if speed > MAX_START_SPEED:  # implausible for an indoor vehicle or walker
+            if speed > ONLINE_MAX_START_SPEED:  # implausible for an indoor vehicle or walker
                 log.warning("initial speed %.1f m/s is implausible: starting from rest, "
                             "velocity sigma 1 m/s", speed)
                 self.vel = np.zeros(3)
@@ -697,8 +680,8 @@ class GraphBuilder:
             # barely separate it from the position, and a loosely held D(a) wanders by
             # centimetres (see ONLINE_ANCHOR_BIAS_SIGMA).
             s_on = min(self.g.range_bias_sigma, ONLINE_COMMON_BIAS_SIGMA)
-            # (not in batch's seeding pass: its EM was tuned from that seed, and the tighter
-            # seed moved Plaza1's batch 0.42 -> 0.72 m, ISAS-Walk1's 0.124 -> 0.144 m)
+            # (not in batch's seeding pass: its EM was tuned from that seed; docs/results.md,
+            # "Constants in one module")
             s_a = self.g.range_bias_anchor_sigma
             if not self.seeding:
                 s_a = held_anchor_bias_sigma(s_a, ONLINE_ANCHOR_BIAS_SIGMA)
@@ -736,7 +719,7 @@ class GraphBuilder:
     def bias_prior_sigmas(self) -> np.ndarray:
         """IMU bias prior sigmas (m/s^2, rad/s): the IMU's, or the virtual IMU's tight ones."""
         if self.cv_motion:
-            return np.full(6, imu_mod.VIRTUAL_BIAS_SIGMA)
+            return np.full(6, VIRTUAL_BIAS_SIGMA)
         return imu_mod.bias_prior_sigmas(self.cfg.imu)
 
     def _stamp_globals(self, inc: Increment, s: float) -> None:
@@ -1100,9 +1083,9 @@ class GraphBuilder:
         """Update `smoothed_sigma_los` from LOS residuals (m) at the smoothed estimate and
         the ranges' responsibilities (last 3000 ranges, every 200).
 
-        Measured against the one-step residuals (LOS ranges, MAD sigma): room 0.025 against
-        0.027, ISAS-Walk1 0.040 against 0.087 (IMU-only prediction). Classifying new ranges
-        needs the wider one, the factors the narrower."""
+        The smoothed residuals are narrower than the one-step ones (docs/results.md,
+        "Constants in one module"): classifying new ranges needs the wider one, the factors
+        the narrower."""
         window = self._smoothed_window.add(r_los, g)
         if window is None:
             return

@@ -48,6 +48,21 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import (
+    BACKDATE_YAW_DRIFT,
+    BATCH_CHUNK,
+    LIVE_LATENCY_KEPT,
+    ONLINE_WINDOW_S,
+    PROVISIONAL_FIX_S,
+    REVIEW_CHANGE,
+    REVIEW_MARGIN_S,
+    REVIEW_MIN_AGE_S,
+    SEARCH,
+    SEARCH_PERSIST,
+    SEARCH_SWITCH_NATS,
+    SMOOTHED_STAT_AGE_S,
+    WHEEL_OFFSET_MAX_PERIODS,
+)
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, noise_fit, offline
@@ -64,20 +79,6 @@ from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
 log = logging.getLogger(__name__)
 
-BATCH_CHUNK = 10  # keyframes per iSAM2 update in the seeding pass of `batch`
-REVIEW_MIN_AGE_S = 0.5  # ranges younger than this keep their insertion classification
-SEARCH = True  # discrete LOS/NLOS hypothesis search in the review (see `_review`)
-SEARCH_SWITCH_NATS = 10.0  # log-likelihood gain of a better LOS/NLOS assignment
-SEARCH_PERSIST = 3  # ... in this many consecutive reviews before it is adopted
-REVIEW_MARGIN_S = 0.5  # ranges this close to leaving the lag window are no longer reviewed
-# age of a keyframe's ranges when their residuals at the smoothed estimate go into the LOS
-# sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
-SMOOTHED_STAT_AGE_S = 2.0
-REVIEW_CHANGE = 0.25  # responsibility change that replaces the range's factors
-LIVE_LATENCY_KEPT = 10_000  # update latencies `forget_before` keeps (16 min at 10 Hz)
-# wheel sample periods: the farthest the batch time-offset search looks (a driver that
-# buffers stamps its samples a few periods late; farther is a clock fault, not an offset)
-WHEEL_OFFSET_MAX_PERIODS = 4.0
 # the report's key for the whole-graph solve of `finish` (see the module docstring)
 FULL_GRAPH_REPORT = {Method.BATCH: "batch", Method.ISAM2_SMOOTHED: "final_smoothing"}
 _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments < 2^40)
@@ -86,12 +87,6 @@ _PAIR = 1 << 40  # (anchor, NLOS segment) -> anchor * _PAIR + segment (segments 
 def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
     q = pose.rotation().toQuaternion()
     return np.array([q.x(), q.y(), q.z(), q.w()])
-
-
-PROVISIONAL_FIX_S = 0.5  # s: the backdated start's UWB fix is taken this long after it
-# (the initialiser's fixes over the last 0.5 s)
-BACKDATE_YAW_DRIFT = 0.1  # rad: allowance for the gyro's drift over the carried-back seconds
-# (a MEMS gyro bias of 0.01 rad/s unmodelled over 10 s)
 
 
 class GraphEstimator(EstimatorBase):
@@ -291,7 +286,7 @@ class GraphEstimator(EstimatorBase):
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
-            recent_s=noise_fit.ONLINE_WINDOW_S if auto_imu else None,
+            recent_s=ONLINE_WINDOW_S if auto_imu else None,
         )
         self._online_imu_inflation = self.builder.imu_inflation
         self.builder.use_priors(self._range_priors)

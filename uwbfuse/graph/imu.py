@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Extrinsics, ImuConfig
+from uwbfuse.constants import VIRTUAL_BIAS_RANDOM_WALK
 from uwbfuse.streams import NS_PER_S
 
 
@@ -46,11 +47,6 @@ def preintegration_params(
     return p
 
 
-# Bias of the constant-velocity prior's virtual IMU: held at zero (it has no sensor), with a
-# random walk (m/s^3/sqrt(Hz), rad/s^2/sqrt(Hz)) small against any motion yet large enough
-# to keep the 0.1 s factors well conditioned, and a prior std (m/s^2, rad/s) to match.
-VIRTUAL_BIAS_RANDOM_WALK = 1e-4
-VIRTUAL_BIAS_SIGMA = 1e-3
 
 
 def motion_prior_params(
@@ -191,12 +187,6 @@ def preintegrate(
     return pim
 
 
-# log2 of the largest IMU noise inflation (on the `[imu]` densities and random walks) the
-# graph uses, 256: there the default accelerometer density (1.0 m/s^2/sqrt(Hz)) is the
-# constant-velocity prior's white-noise acceleration (`graph.motion_accel_density`) that
-# stands in for a missing IMU, so an IMU held looser says no more than no IMU. The online
-# graph starts there under `graph.imu_noise_inflation = "auto"` (`noise_fit`)
-IMU_INFLATION_MAX_LOG2 = 8.0
 
 
 @dataclass

@@ -36,30 +36,24 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import (
+    IMU_INFLATION_MAX_LOG2,
+    IMU_NOISE_TEST_NATS,
+    NOISE_PRIOR_LOG2,
+    NOISE_STEP,
+    ONLINE_FIRST_S,
+    WHEEL_NOISE_MAX_LOG2,
+    WHEEL_NOISE_TEST_NATS,
+)
 from uwbfuse.graph.builder import RecentMotion, WheelRecords
-from uwbfuse.graph.imu import IMU_INFLATION_MAX_LOG2, ImuRecords
+from uwbfuse.graph.imu import ImuRecords
 from uwbfuse.graph.offline import replace_wheel_factors, run_lm, with_robust_ranges
 from uwbfuse.graph.wheel import planar_covariance6
 
 log = logging.getLogger(__name__)
 
-NOISE_STEP = 1.0  # log2: factor-of-2 grid steps
-# log2: std of the log-normal hyperprior on each factor (the configured noise is right within
-# a factor 4 at one sd): where the evidence is flat in a factor (the wheel factors' 1 mm /
-# 1 mrad floor reached, or ranges that outweigh the sensor) it stays near 1 instead of
-# drifting to the search's edge on noise-level differences
-NOISE_PRIOR_LOG2 = 2.0
-# log2: wheel factors within 1 .. 16 of the configured sigmas: odometry 16x noisier than
-# its configuration is no odometry
-WHEEL_NOISE_MAX_LOG2 = 4.0
-# log2: the IMU within 1 .. 256 of the configured densities (`imu.IMU_INFLATION_MAX_LOG2`)
+# log2: the IMU within 1 .. 256 of the configured densities (`constants.IMU_INFLATION_MAX_LOG2`)
 IMU_NOISE_MAX_LOG2 = IMU_INFLATION_MAX_LOG2
-# nats: the fitted factors replace the configured noise only where they raise the
-# log-evidence by half the 5 % point of chi-square with as many degrees of freedom as
-# factors (a likelihood-ratio test): a flat evidence (Labyrinth's wheels: 1 nat over
-# 1/4 .. 4) keeps the configuration rather than a vertex placed by noise
-WHEEL_NOISE_TEST_NATS = 0.5 * 5.991  # 2 factors
-IMU_NOISE_TEST_NATS = 0.5 * 3.841  # 1 factor
 
 
 @dataclass(frozen=True)
@@ -304,9 +298,7 @@ def _grid_point(inflation: float) -> float:
 # loose prior on its first keyframe), first once ONLINE_FIRST_S of keyframes are in, then
 # each time the graph's age has doubled since the last fit; the result is used for the IMU
 # factors built afterwards. The work of one fit is bounded by the window, and the fits
-# become rarer as the log goes on (a sensor's noise level does not change with time)
-ONLINE_FIRST_S = 10.0  # s: ~100 IMU factors and a few hundred ranges
-ONLINE_WINDOW_S = 30.0  # s: the window a fit looks at (bounds its work)
+# become rarer as the log goes on (a sensor's noise level does not change with time).
 
 
 def online_fit_due(age_s: float, last_fit_age_s: float | None) -> bool:

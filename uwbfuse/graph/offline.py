@@ -28,11 +28,33 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config, GraphConfig, RobustKernel, UwbConfig
-from uwbfuse.graph.builder import WHEEL_HUBER_K, WheelRecords, held_anchor_bias_sigma
+from uwbfuse.constants import (
+    BATCH_ANCHOR_BIAS_SIGMA,
+    BATCH_SEARCH,
+    BATCH_SEARCH_NATS,
+    BATCH_SEARCH_WINDOW_S,
+    CLASSIFIER_FIT_ITERATIONS,
+    CLASSIFIER_FIT_RIDGE,
+    EM_ROUND_LM_ITERATIONS,
+    HELDOUT_BLOCK_S,
+    HELDOUT_EVERY,
+    HELDOUT_PHASES,
+    LM_RELATIVE_TOL,
+    LOG_OUTLIER,
+    MAX_ROBUST_SIGMA,
+    MIN_HELDOUT_RANGES,
+    MIN_SCORED_RANGES,
+    MIN_WEIGHT,
+    SIGMA_LOS_MIN,
+    SIGMA_STEP,
+    WHEEL_HUBER_K,
+    WHEEL_SCALE_MIN_CHANGE,
+    WHEEL_SCALE_SIGMA,
+)
+from uwbfuse.graph.builder import WheelRecords, held_anchor_bias_sigma
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
-    MIN_WEIGHT,
     huber_log_density,
     los_bias_key,
     los_subset_search,
@@ -40,30 +62,14 @@ from uwbfuse.graph.uwb import (
     range_factor_keyed,
 )
 from uwbfuse.graph.wheel import between_factor
-from uwbfuse.nlos import LOG_OUTLIER, SIGMA_LOS_MIN, NlosModel, hmm_smooth
+from uwbfuse.nlos import NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
 
 log = logging.getLogger(__name__)
 
-# LM iterations of an intermediate EM round: only close enough for the next E-step
-EM_ROUND_LM_ITERATIONS = 6
-CLASSIFIER_FIT_ITERATIONS = 25  # Newton steps of the two-parameter logistic fit
-CLASSIFIER_FIT_RIDGE = 1e-6  # keeps the fit's Hessian invertible when the log-odds are constant
-# E-step LOS/NLOS hypothesis search per 5 s stretch (`_search_windows`): a stretch is
-# scored against another assignment when it explains the ranges by this many nats more
-BATCH_SEARCH = True
-BATCH_SEARCH_NATS = 20.0
-BATCH_SEARCH_WINDOW_S = 5.0
-# LM stops when an iteration lowers the error by less than this fraction
-LM_RELATIVE_TOL = 1e-3
 
 
-# m: each anchor's range bias around the common one, as held in the LM rounds that free the
-# biases (the seeding pass keeps `graph.range_bias_anchor_sigma`; online caps it alike,
-# `builder.ONLINE_ANCHOR_BIAS_SIGMA`): freed at the configured 5 cm, the anchors of a mostly
-# blocked site take up NLOS excess that EM left on LOS and the track shifts
-BATCH_ANCHOR_BIAS_SIGMA = 0.02
 
 
 def _cap_anchor_bias_sigma(graph: gtsam.NonlinearFactorGraph, n_anchor: int,
@@ -113,8 +119,6 @@ class BatchResult:
 # in NLOS, their excess states floating) the smoothed track follows the odometry and drifts
 # by the scale error times the distance. One refit after the closing LM round, then one
 # more LM round (docs/results.md, "Wheel odometry scale").
-WHEEL_SCALE_SIGMA = 0.05  # prior std of the speed and yaw-rate scale factors (1 = none)
-WHEEL_SCALE_MIN_CHANGE = 5e-4  # the wheel factors are rebuilt when a scale moved this much
 
 
 class _WheelScale:
@@ -215,9 +219,6 @@ def predicted_ranges(
     return np.linalg.norm(p - anchors[rec["anchor"]], axis=1)
 
 
-# relative step of the log grid the range sigmas are rounded to (weights within ~1 %), so
-# that a range whose weight barely moved between EM rounds keeps its factor
-SIGMA_STEP = 0.005
 
 
 class _RangeFactors:
@@ -453,13 +454,6 @@ def _cross_validated(
 # HELDOUT_BLOCK_S of the log. 2 s holds out a range with its neighbours of the same NLOS
 # episode (segments of about 1 s), so the candidates must predict it from the motion and
 # their calibration, not from its twin a tenth of a second away; odometry bridges 2 s.
-HELDOUT_BLOCK_S = 2.0
-HELDOUT_EVERY = 8  # one stretch in eight per phase: 7/8 of the ranges still fit
-HELDOUT_PHASES = (4, 0, 6, 2, 5, 1, 7, 3)  # phases in the order they are held out
-# held-out ranges that end the cross-validation: their mean log score then has a standard
-# error of about 0.1 nats (per-range spread ~1 nat), below the gaps that decide
-MIN_SCORED_RANGES = 100
-MIN_HELDOUT_RANGES = 20  # fewer held-out ranges than this cannot rank two models
 
 
 def heldout_mask(t_ns: np.ndarray, t0_ns: int, phase: int = HELDOUT_PHASES[0]) -> np.ndarray:
@@ -503,7 +497,6 @@ def _solve_robust(
     return out
 
 
-MAX_ROBUST_SIGMA = 1.0  # m: a LOS range sigma beyond this is no UWB radio's
 
 
 def _bias_values(values: gtsam.Values, n_anchor: int) -> np.ndarray:
@@ -1007,7 +1000,7 @@ def hypothesis_shift_moments(
     the model's own posterior over assignments says the position is that much less
     certain (Bayesian model averaging: the mean squared error about the reported track is
     the conditional covariance plus this moment). Near zero where the assignment is clear;
-    zero where the search does not run (more than `uwb.SEARCH_MAX_ANCHORS` anchors heard
+    zero where the search does not run (more than `constants.SEARCH_MAX_ANCHORS` anchors heard
     in a stretch, or too few ranges).
     """
     a_r = rec["anchor"].astype(np.int64)

@@ -25,11 +25,9 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import PoseConfig, RobustKernel
+from uwbfuse.constants import NO_INFORMATION
 from uwbfuse.graph.noise import robust_estimator
 
-# information (1/variance, in 1/m^2 or 1/rad^2) left in the directions a planar pose factor
-# does not constrain: small enough to be no constraint, large enough for a PD information
-NO_INFORMATION = 1e-8
 # GTSAM tangent (rx, ry, rz, x, y, z) indices of a planar factor's x, y, yaw
 _PLANAR = np.array([2, 3, 4])
 _ROS_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # (x, y, z, rx, ry, rz) -> (rx, ry, rz, x, y, z)

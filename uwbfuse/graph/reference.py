@@ -19,9 +19,9 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Config, RobustKernel
+from uwbfuse.constants import LM_RELATIVE_TOL
 from uwbfuse.graph.keys import L, X
 from uwbfuse.graph.noise import range_noise
-from uwbfuse.graph.offline import LM_RELATIVE_TOL
 
 
 @dataclass(frozen=True)

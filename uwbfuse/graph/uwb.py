@@ -29,17 +29,10 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import UwbConfig
+from uwbfuse.constants import EXCESS_FLOOR, SEARCH_MAX_ANCHORS, SEARCH_SHIFT_SIGMA
 from uwbfuse.graph.keys import D, L, X
 from uwbfuse.graph.noise import range_noise
 from uwbfuse.nlos import NlosModel
-
-MIN_WEIGHT = 0.01  # component weights below this add no factor
-SEARCH_SHIFT_SIGMA = 0.5  # m: prior std of the track shift in `los_subset_search`
-EXCESS_FLOOR = -0.2  # m: least NLOS excess a `los_subset_search` hypothesis may need
-# `los_subset_search` solves 2^M subsets; with more anchors than this it is skipped: measured
-# on warehouse-nlos with 8 anchors (3 seeds) isam2 0.19 m without the search, 0.23 m with
-# it (more hypotheses, more spurious winners; anchors switch class inside the window)
-SEARCH_MAX_ANCHORS = 6
 
 
 def huber_log_density(r: np.ndarray, sigma: float, k: float) -> np.ndarray:

@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config
+from uwbfuse.constants import RANGE_SCALE_MIN_EFFECT_M, RANGE_SCALE_MIN_ERROR
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
     epoch_window_ns,
@@ -81,14 +82,6 @@ _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, ca
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 _RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
 _RIVAL_SEPARATION = math.radians(20.0)  # rad: yaw minima closer than this are one basin
-RANGE_SCALE_MIN_ERROR = 0.02
-"""A start-solve range scale is applied only when it is this far from 1 (Plaza: ~7 %)."""
-RANGE_SCALE_MIN_EFFECT_M = 0.5
-"""... and when it moves the ranges of the start position by this much (m, at the median
-anchor distance). Start solves find the scale (k) to about 1-2 % at room size: k x distance
-was 2.4 and 3.3 m on Plaza2 and Plaza1 (radios ~7 % long at 34-41 m), 0.12 m on the
-simulated room-static seed 0 (k = 2.5 % at 4.9 m, a false positive that put batch at
-0.11 m instead of 0.02 m) and 0.04 m on Labyrinth (1.9 % at 1.9 m)."""
 
 
 def range_scale_applies(k: float, anchors: AnchorMap, position: np.ndarray) -> bool:

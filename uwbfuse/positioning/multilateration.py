@@ -27,14 +27,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.config import RobustKernel
+from uwbfuse.constants import COPLANAR_SPREAD, MAX_DOP
 
 F64 = NDArray[np.float64]
 BoolArr = NDArray[np.bool_]
 
-#: DOP above which a fix counts as degenerate geometry.
-MAX_DOP = 30.0
-#: anchors whose z spread is below this (m) are treated as coplanar in 3-D solves.
-COPLANAR_SPREAD = 0.3
 
 
 @dataclass(frozen=True)

@@ -51,6 +51,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.config import Config, RobustKernel
+from uwbfuse.constants import (
+    EVIDENCE_WEIGHT,
+    HISTORY_LONG,
+    HISTORY_RANGES,
+    LABEL_THRESHOLD_M,
+    MAX_EVIDENCE_NATS,
+    MAX_JUMP_GAP_S,
+    MAX_REFERENCE_AGE_S,
+    MIN_EPOCH_WINDOW_S,
+    TRACK_FIXES,
+)
 from uwbfuse.errors import ConfigError, EstimatorError
 from uwbfuse.positioning.multilateration import (
     default_tag_z,
@@ -78,28 +89,6 @@ POWER_FEATURES = ("rssi_dbm", "rx_minus_fp_db", "rx_minus_fp_median", "rx_minus_
                   "fp_excess_db")
 KNOWN_FEATURES = RESIDUAL_FEATURES + POWER_FEATURES
 
-# m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
-# noise but an excess path (NLOS) or a gross ranging fault, and either should be trusted less
-LABEL_THRESHOLD_M = 0.15
-MAX_REFERENCE_AGE_S = 2.0  # s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
-TRACK_FIXES = 8  # fixes in the reference's line fit: about 1 s of 0.1 s epochs
-MAX_JUMP_GAP_S = 2.0  # s: a range jump over a longer gap is motion, not a change of path
-# nats: a forest's leaf frequencies of 0 or 1 are not certainty (its leaves hold a few
-# ranges each); 5 nats is odds of 150:1
-MAX_EVIDENCE_NATS = 5.0
-# the forest's residual features overlap the evidence a consumer's own residual (the
-# graph's, a filter's innovation) gives: its log-odds count half (a tempered likelihood),
-# so that the same residual is not counted twice in full
-EVIDENCE_WEIGHT = 0.5
-# ranges of one anchor (this one and those before it) in the running medians: NLOS lasts
-# while an obstacle is in the way, seconds at walking or AGV speed (5 ranges: 0.5 s at 40 Hz
-# over four anchors)
-HISTORY_RANGES = 5
-# ranges of one anchor in the long running median: the slow part of an NLOS excess (a
-# shelf's delay) lasts seconds, so about 2 s of one anchor's ranges (20 at 40 Hz over four
-# anchors) average the LOS noise out of it
-HISTORY_LONG = 20
-MIN_EPOCH_WINDOW_S = 0.05  # s: shortest epoch (four anchors at 40 Hz take 0.1 s)
 
 
 # ------------------------------------------------------------------------------ features

@@ -25,15 +25,9 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from uwbfuse.config import Config, RobustKernel
+from uwbfuse.constants import MAX_LOS_STD, MIN_LOS_STD
 from uwbfuse.errors import EstimatorError
-from uwbfuse.nlos import (
-    MAX_LOS_STD,
-    MIN_LOS_STD,
-    NlosModel,
-    NlosParams,
-    nlos_probability,
-    normal_pdf,
-)
+from uwbfuse.nlos import NlosModel, NlosParams, nlos_probability, normal_pdf
 from uwbfuse.positioning.multilateration import (
     Fixes,
     gauss_newton,

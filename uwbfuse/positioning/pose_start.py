@@ -3,7 +3,7 @@
 
 `PoseStartInitialiser` is the `SparseStartInitialiser` of the graph and the filters plus
 external poses: once START_POSES consecutive poses within START_SPAN_S agree with each
-other (no step faster than MAX_START_SPEED: a localiser's wrong match jumps by metres
+other (no step faster than POSE_START_MAX_SPEED: a localiser's wrong match jumps by metres
 between two messages), the newest of them is the start (base in the map frame, its
 attitude, velocity from the wheels or the poses, biases zero); before that, and on logs
 without poses, the inner initialiser decides as before. `pose_arrays` hands the buffered
@@ -17,13 +17,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from uwbfuse.constants import POSE_START_MAX_SPEED, START_POSES, START_SPAN_S
 from uwbfuse.positioning.initialisation import InitialState
 from uwbfuse.positioning.sparse_start import SparseStartInitialiser
 from uwbfuse.streams import NS_PER_S
-
-START_POSES = 3  # consecutive consistent poses the start needs
-START_SPAN_S = 1.0  # ... within this many seconds (the localisers publish at 5-30 Hz)
-MAX_START_SPEED = 3.0  # m/s: a faster step between two poses is a wrong match
 
 
 class PoseBuffer:
@@ -96,7 +93,7 @@ class PoseStartInitialiser(SparseStartInitialiser):
             return None
         dt = np.maximum(np.diff(tt) / NS_PER_S, 1e-3)
         steps = np.linalg.norm(np.diff(p[last, :2], axis=0), axis=1)
-        if np.any(steps / dt > MAX_START_SPEED):
+        if np.any(steps / dt > POSE_START_MAX_SPEED):
             return None
         i = int(last[-1])
         rot = Rotation.from_quat(q[i]).as_matrix()

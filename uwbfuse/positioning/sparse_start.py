@@ -24,10 +24,17 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.positioning.start import (
+from uwbfuse.constants import (
+    FALLBACK_AFTER_S,
+    FALLBACK_RETRY_S,
+    MAX_RETRY_S,
     MIN_TRAVEL_M,
+    START_WINDOW_S,
     STATIC_MAX_DRIFT_M,
     STATIC_MAX_TURN_RAD,
+    STATIC_WHEEL_GAP_NS,
+)
+from uwbfuse.positioning.start import (
     planar_height,
     solve_start,
     solve_static,
@@ -39,17 +46,6 @@ from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
 
-FALLBACK_AFTER_S = 5.0  # s of ranges without a start before the wheel-track start solve
-FALLBACK_RETRY_S = 1.0  # s of data between two attempts (start solve, standstill fix)
-STATIC_WHEEL_GAP_NS = 500_000_000  # wheel data must reach this close to a standstill's ends
-# s of the newest ranges a start solve fits: keeps each attempt bounded on a log that never
-# starts (every FALLBACK_RETRY_S over all ranges so far would grow quadratically); Plaza's
-# starts use 50 s of ranges at most
-START_WINDOW_S = 120.0
-# after each failed start solve with the wheels past MIN_TRAVEL_M the wait to the next
-# doubles, up to this (s): a log that never starts (wrong anchor map, say) spent 455 s of
-# start solves on 600 s of data at one attempt per second
-MAX_RETRY_S = 30.0
 
 
 class SparseStartInitialiser:

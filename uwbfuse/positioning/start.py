@@ -20,16 +20,24 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
+from uwbfuse.constants import (
+    HEIGHT_SPREAD_M,
+    MAX_RMS_M,
+    MAX_RMS_REL,
+    MIN_COST_RATIO,
+    MIN_TRAVEL_M,
+    N_SEEDS,
+    START_MIN_RANGES,
+    STATIC_MAX_RANGES,
+    STATIC_MAX_SCALE,
+    STATIC_MAX_SPEED,
+    STATIC_MAX_YAW_RATE,
+    STATIC_MIN_ANCHORS,
+    STATIC_MIN_RANGES,
+)
 from uwbfuse.positioning.initialisation import InitialState
 from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
-
-MIN_TRAVEL_M = 2.0  # path length before a heading is attempted, m
-MIN_RANGES = 30
-N_SEEDS = 8
-MAX_RMS_M = 0.5  # robust residual scale of an accepted solution, m
-MAX_RMS_REL = 0.03  # ... or this fraction of the median range on large sites
-MIN_COST_RATIO = 2.0  # second-best minimum must be this much worse
 
 
 def _rot_z(yaw: float) -> np.ndarray:
@@ -54,11 +62,11 @@ def solve_start(
     t_now: int,
 ) -> InitialState | None:
     """The base pose at t_now from the wheel track and the raw ranges, or None."""
-    if len(track) < 2 or len(t_r) < MIN_RANGES:
+    if len(track) < 2 or len(t_r) < START_MIN_RANGES:
         return None
     sel = (t_r >= track.t[0]) & (t_r <= t_now)
     t_r, a_r, z_r = t_r[sel], a_r[sel], z_r[sel]
-    if len(t_r) < MIN_RANGES or len(np.unique(a_r)) < 3:
+    if len(t_r) < START_MIN_RANGES or len(np.unique(a_r)) < 3:
         return None
     if track_travel(track, t_now) < MIN_TRAVEL_M:
         return None
@@ -116,14 +124,6 @@ def solve_start(
     )
 
 
-# standstill fix (`solve_static`)
-STATIC_MIN_RANGES = 8
-STATIC_MIN_ANCHORS = 4  # x, y and a common scale, plus one range of redundancy
-STATIC_MAX_RANGES = 2000  # the newest ones are kept on a long standstill
-# standing still: every wheel sample under these speeds (Plaza2's odometry reads 8 mm/s
-# and -7 mrad/s at rest, so a path-length test would fail within seconds) ...
-STATIC_MAX_SPEED = 0.05  # m/s
-STATIC_MAX_YAW_RATE = 0.05  # rad/s
 
 
 def wheels_still(v: np.ndarray, omega: np.ndarray) -> np.ndarray:
@@ -133,10 +133,6 @@ def wheels_still(v: np.ndarray, omega: np.ndarray) -> np.ndarray:
     return (np.abs(v) <= STATIC_MAX_SPEED) & (np.abs(omega) <= STATIC_MAX_YAW_RATE)
 
 
-# ... and the dead-reckoned track within these of where it was at the first range
-STATIC_MAX_DRIFT_M = 0.3
-STATIC_MAX_TURN_RAD = 0.3
-STATIC_MAX_SCALE = 0.15
 
 
 def solve_static(
@@ -182,7 +178,6 @@ def solve_static(
     return best[:2].copy(), float(best[2]), rms
 
 
-HEIGHT_SPREAD_M = 1.0  # m: anchors spread over this much height observe the tag's height
 
 
 def anchors_observe_height(positions: np.ndarray) -> bool:

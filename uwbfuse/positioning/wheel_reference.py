@@ -31,24 +31,20 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from uwbfuse.constants import (
+    ITERATIONS,
+    MAX_WHEEL_GAP_S,
+    MIN_INLIER_SHARE,
+    MIN_SPREAD_M,
+    REFERENCE_MIN_RANGES,
+    STEP_INFO,
+    WINDOW_S,
+)
 from uwbfuse.positioning.wheel_track import WheelTrack, arc_steps
 from uwbfuse.streams import NS_PER_S, WheelStream
 
 F64 = NDArray[np.float64]
 
-# s: ranges in one fit. The wheel track's shape over 5 s (2.5 m at AGV speed) is good to a
-# few cm (1 % scale error), and 5 s holds ~50 ranges per anchor at 40 Hz over four anchors
-WINDOW_S = 5.0
-MIN_RANGES = 8  # ranges of the other anchors a fit needs (three unknowns, robust)
-MAX_WHEEL_GAP_S = 1.0  # s: a track carried further on the last twist is a guess
-# m: RMS spread of the window's track points (about their mean) that makes heading
-# observable: below it a rotation is a translation to within the range noise
-MIN_SPREAD_M = 0.5
-MIN_INLIER_SHARE = 0.3  # below this share of ranges within 3 scales the fit has lost them
-ITERATIONS = 8  # Gauss-Newton steps per fit (warm-started from the previous epoch)
-# information (1/m^2, 1/m^2, 1/rad^2) on a fit's step from its warm start: keeps the yaw
-# of a still window (no lever arm) where it was, and is nothing against ~100 ranges at 0.1 m
-STEP_INFO = np.array([1e-6, 1e-6, 100.0])
 
 
 def causal_track_points(wheel: WheelStream, t_ns: NDArray[np.int64], tag_xy: F64
@@ -177,7 +173,7 @@ def wheel_reference(
         use = anchor[sel][None, :] != np.arange(m_anchors + 1)[:, None]
         fit, share = _fit(np.tile(cur, (m_anchors + 1, 1)), q[sel], anchor_xy[anchor[sel]],
                           d_planar[sel], use, scale)
-        enough = use.sum(1) >= MIN_RANGES
+        enough = use.sum(1) >= REFERENCE_MIN_RANGES
         if not enough[-1]:
             continue
         if share[-1] < MIN_INLIER_SHARE:  # lost: start again from the fixes

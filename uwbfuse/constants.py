@@ -1,0 +1,404 @@
+"""The estimator's constants: the tuning and physical constants of estimation that must stay
+constants, in one module, grouped by what reads them.
+
+Rule: each constant carries one comment line (two at most) with its unit and its physical
+reason (sensor physics, geometry, or a numerical reason). Measured results (tables, "A -> B"
+figures, what a value did on one log or scenario) do not live here: they are in
+docs/results.md, section "Constants in one module (issue 13; 2026-12-05, session 18)", which
+also lists the constants still chosen from results.
+
+This module imports nothing from GTSAM and nothing from the rest of uwbfuse (so every layer
+can read it). File formats (`uwbfuse.io`), simulator scenarios (`uwbfuse.sim`), plot
+styling, CLI codes, safety/fleet settings and structural values (state layouts, feature and
+model name tuples) stay in their modules.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# ---------------------------------------------------------------------------------------
+# Start: start solve from ranges and wheels (`positioning.start`, `positioning.sparse_start`)
+# ---------------------------------------------------------------------------------------
+
+# m: path length before a heading is attempted
+MIN_TRAVEL_M = 2.0
+# ranges a start solve needs before it is attempted
+START_MIN_RANGES = 30
+# yaw seeds of the start solve, 45 deg apart (its cost is multimodal in yaw)
+N_SEEDS = 8
+# m: robust residual scale of an accepted start solution
+MAX_RMS_M = 0.5
+# ... or this fraction of the median range on large sites
+MAX_RMS_REL = 0.03
+# second-best minimum must be this much worse (cost ratio): otherwise the yaw is ambiguous
+MIN_COST_RATIO = 2.0
+# ranges a standstill fix (`solve_static`) needs
+STATIC_MIN_RANGES = 8
+# anchors a standstill fix needs: x, y and a common scale, plus one range of redundancy
+STATIC_MIN_ANCHORS = 4
+# ranges a standstill fix keeps (the newest) on a long standstill: bounds its work
+STATIC_MAX_RANGES = 2000
+# m/s: every wheel sample under this speed is standing still (above odometry noise at rest)
+STATIC_MAX_SPEED = 0.05
+# rad/s: ... and under this yaw rate (above odometry noise at rest)
+STATIC_MAX_YAW_RATE = 0.05
+# m: the dead-reckoned track stays within this of where it was at the first range (standstill)
+STATIC_MAX_DRIFT_M = 0.3
+# rad: ... and turns by at most this
+STATIC_MAX_TURN_RAD = 0.3
+# bound on a standstill fix's common range scale error (relative)
+STATIC_MAX_SCALE = 0.15
+# m: anchors spread over this much height observe the tag's height
+HEIGHT_SPREAD_M = 1.0
+# s of ranges without a start before the wheel-track start solve is attempted
+FALLBACK_AFTER_S = 5.0
+# s of data between two attempts (start solve, standstill fix)
+FALLBACK_RETRY_S = 1.0
+# ns: wheel data must reach this close to a standstill's ends
+STATIC_WHEEL_GAP_NS = 500_000_000
+# s of the newest ranges a start solve fits: keeps each attempt bounded on a log that never
+# starts (every FALLBACK_RETRY_S over all ranges so far would grow quadratically)
+START_WINDOW_S = 120.0
+# s: longest wait between failed start solves (doubling): bounds the work of a log that never
+# starts (wrong anchor map, say)
+MAX_RETRY_S = 30.0
+
+# Start from an external pose stream (`positioning.pose_start`)
+# consecutive consistent poses the start needs
+START_POSES = 3
+# s: ... within this span (the localisers publish at 5-30 Hz)
+START_SPAN_S = 1.0
+# m/s: a faster step between two poses is a wrong match
+POSE_START_MAX_SPEED = 3.0
+
+# Start-solve range scale (`positioning.initialisation`)
+# a start-solve range scale is applied only when it is this far from 1 (start solves find it
+# to about 1-2 % at room size)
+RANGE_SCALE_MIN_ERROR = 0.02
+# m: ... and when it moves the ranges of the start position by this much (at the median anchor
+# distance): below it the scale is within the start solve's noise
+RANGE_SCALE_MIN_EFFECT_M = 0.5
+
+# Fallback before a method's start (`prestart`)
+# epochs the primary must answer in a row before the fallback is dropped (2 s at 10 Hz: past
+# the start's first updates)
+DROP_AFTER_EPOCHS = 20
+# m: fallback fix to provisional fix distance that discredits the fallback: several times a
+# LOS fix's error, below a biased fix's (a radio scale of 7 % at 15 m is 1 m)
+DISAGREE_M = 1.0
+# s: longest hold of the last provisional position in place of a discredited fallback (the
+# time a walker needs for the couple of metres the start solve needs)
+PROVISIONAL_GRACE_S = 5.0
+# ns: the wheels say "still" only when their last sample is this recent (10 samples at 50 Hz)
+STILL_WHEEL_GAP_NS = 200_000_000
+
+# Backdated start of the graph methods (`graph.estimator`)
+# s: the backdated start's UWB fix is taken this long after it (the initialiser's fixes over
+# the last 0.5 s)
+PROVISIONAL_FIX_S = 0.5
+# rad: allowance for the gyro's drift over the carried-back seconds (a MEMS gyro bias of
+# 0.01 rad/s unmodelled over 10 s)
+BACKDATE_YAW_DRIFT = 0.1
+
+# ---------------------------------------------------------------------------------------
+# Wheels
+# ---------------------------------------------------------------------------------------
+
+# Huber threshold of the wheel factor (whitened, in sigmas): wheel slip is an outlier
+WHEEL_HUBER_K = 1.345
+# prior std of the speed and yaw-rate scale factors (1 = none): wheel radius and track width
+# are off by 1-3 % ordinarily
+WHEEL_SCALE_SIGMA = 0.05
+# the wheel factors are rebuilt when a scale moved this much (relative)
+WHEEL_SCALE_MIN_CHANGE = 5e-4
+# wheel sample periods: the farthest the batch time-offset search looks (a driver that
+# buffers stamps its samples a few periods late; farther is a clock fault, not an offset)
+WHEEL_OFFSET_MAX_PERIODS = 4.0
+
+# Wheel-track reference of the NLOS classifier (`positioning.wheel_reference`)
+# s: ranges in one fit. The wheel track's shape over 5 s (2.5 m at AGV speed) is good to a
+# few cm (1 % scale error), and 5 s holds ~50 ranges per anchor at 40 Hz over four anchors
+WINDOW_S = 5.0
+# ranges of the other anchors a fit needs (three unknowns, robust)
+REFERENCE_MIN_RANGES = 8
+# s: a track carried further on the last twist is a guess
+MAX_WHEEL_GAP_S = 1.0
+# m: RMS spread of the window's track points (about their mean) that makes heading
+# observable: below it a rotation is a translation to within the range noise
+MIN_SPREAD_M = 0.5
+# below this share of ranges within 3 scales the fit has lost them
+MIN_INLIER_SHARE = 0.3
+# Gauss-Newton steps per fit (warm-started from the previous epoch)
+ITERATIONS = 8
+# information (1/m^2, 1/m^2, 1/rad^2) on a fit's step from its warm start: keeps the yaw
+# of a still window (no lever arm) where it was, and is nothing against ~100 ranges at 0.1 m
+STEP_INFO = np.array([1e-6, 1e-6, 100.0])
+
+# ---------------------------------------------------------------------------------------
+# IMU
+# ---------------------------------------------------------------------------------------
+
+# Bias of the constant-velocity prior's virtual IMU (it has no sensor): random walk
+# (m/s^3/sqrt(Hz), rad/s^2/sqrt(Hz)) small against any motion yet keeps 0.1 s factors conditioned
+VIRTUAL_BIAS_RANDOM_WALK = 1e-4
+# m/s^2, rad/s: prior std of that virtual bias, to match its random walk
+VIRTUAL_BIAS_SIGMA = 1e-3
+# log2 of the largest IMU noise inflation (256): there the default accelerometer density
+# equals the constant-velocity prior's, so an IMU held looser says no more than no IMU
+IMU_INFLATION_MAX_LOG2 = 8.0
+
+# Standstill detection of the filters' dead reckoning (`filters.dead_reckoning`)
+# s: longest span a pose is extrapolated past the last sample; beyond it the pose holds
+MAX_EXTRAPOLATION_S = 0.5
+# s: window of the accel std / mean-shift motion test
+MOTION_WINDOW_S = 0.2
+# s: the still part ends this long before the first sample that shows motion: a jerk-limited
+# start is detected late, and its samples in the still means would tilt the levelling
+ONSET_GUARD_S = 1.0
+# standard errors (of the still samples' noise) a window mean must move to show motion; at
+# least MEAN_SHIFT_FLOOR, at most `init.standstill_accel_std_max`
+MEAN_SHIFT_SIGMAS = 5.0
+# m/s^2: floor of that mean shift
+MEAN_SHIFT_FLOOR = 0.02
+
+# ---------------------------------------------------------------------------------------
+# Ranges and NLOS model (`nlos`, `graph.uwb`, multilateration)
+# ---------------------------------------------------------------------------------------
+
+# m: floor of the LOS sigma of the state model's M-step: below it a fit is the one-step
+# prediction's luck, not the radio (a DW1000 reads about 2 cm in LOS)
+SIGMA_LOS_MIN = 0.02
+# m: floor of the NLOS sigma alike
+SIGMA_NLOS_MIN = 0.03
+# m: floor on the per-range LOS std used for probabilities
+MIN_LOS_STD = 0.005
+# m: a fitted LOS std beyond this is no UWB radio's
+MAX_LOS_STD = 1.0
+# ns: residual jumps are taken only between consecutive ranges at most this far apart
+JUMP_MAX_GAP_NS = 500_000_000
+# m: a residual change beyond this is a gross outlier, not a jump
+JUMP_MAX_M = 1.0
+# log density (1/m): gross-outlier floor of each component's likelihood, 2 % spread over 20 m
+LOG_OUTLIER = math.log(0.02 / 20.0)
+# MAD -> standard deviation of a normal distribution (1 / Phi^-1(3/4))
+NORMAL_MAD_SCALE = 1.482602218505602
+# component weights below this add no factor
+MIN_WEIGHT = 0.01
+# m: prior std of the track shift in `los_subset_search`
+SEARCH_SHIFT_SIGMA = 0.5
+# m: least NLOS excess a `los_subset_search` hypothesis may need (below 0: room for LOS
+# biases that have absorbed some NLOS)
+EXCESS_FLOOR = -0.2
+# `los_subset_search` solves 2^M subsets; with more anchors than this it is skipped (more
+# hypotheses, more spurious winners; anchors switch class inside the window)
+SEARCH_MAX_ANCHORS = 6
+# m: heard anchors closer than this (RMS) to one line in x, y count as collinear
+COLLINEAR_RMS_M = 0.1
+# DOP above which a fix counts as degenerate geometry
+MAX_DOP = 30.0
+# m: anchors whose z spread is below this are treated as coplanar in 3-D solves
+COPLANAR_SPREAD = 0.3
+
+# ---------------------------------------------------------------------------------------
+# Learned NLOS classifier (`positioning.nlos_classifier`)
+# ---------------------------------------------------------------------------------------
+
+# m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
+# noise but an excess path (NLOS) or a gross ranging fault, and either should be trusted less
+LABEL_THRESHOLD_M = 0.15
+# s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
+MAX_REFERENCE_AGE_S = 2.0
+# fixes in the reference's line fit: about 1 s of 0.1 s epochs
+TRACK_FIXES = 8
+# s: a range jump over a longer gap is motion, not a change of path
+MAX_JUMP_GAP_S = 2.0
+# nats: a forest's leaf frequencies of 0 or 1 are not certainty (its leaves hold a few
+# ranges each); 5 nats is odds of 150:1
+MAX_EVIDENCE_NATS = 5.0
+# weight of the forest's log-odds: its residual features overlap the consumer's own residual,
+# so they count half (a tempered likelihood) rather than twice in full
+EVIDENCE_WEIGHT = 0.5
+# ranges of one anchor in the running medians: NLOS lasts while an obstacle is in the way
+# (5 ranges: 0.5 s at 40 Hz over four anchors)
+HISTORY_RANGES = 5
+# ranges of one anchor in the long running median: a shelf's delay lasts seconds, so about
+# 2 s of one anchor's ranges (20 at 40 Hz over four anchors) average the LOS noise out
+HISTORY_LONG = 20
+# s: shortest epoch (four anchors at 40 Hz take 0.1 s)
+MIN_EPOCH_WINDOW_S = 0.05
+
+# ---------------------------------------------------------------------------------------
+# Noise levels fitted from the log's evidence (`graph.noise_fit`)
+# ---------------------------------------------------------------------------------------
+
+# log2: factor-of-2 grid steps of the noise search
+NOISE_STEP = 1.0
+# log2: std of the log-normal hyperprior on each factor (the configured noise is right within
+# a factor 4 at one sd): where the evidence is flat the factor stays near 1
+NOISE_PRIOR_LOG2 = 2.0
+# log2: wheel factors within 1 .. 16 of the configured sigmas: odometry 16x noisier than
+# its configuration is no odometry
+WHEEL_NOISE_MAX_LOG2 = 4.0
+# nats: half the 5 % point of chi-square with 2 dof (2 wheel factors): a likelihood-ratio
+# test, so a flat evidence keeps the configuration rather than a vertex placed by noise
+WHEEL_NOISE_TEST_NATS = 0.5 * 5.991
+# nats: the same test with 1 dof (1 IMU factor)
+IMU_NOISE_TEST_NATS = 0.5 * 3.841
+# s: first online IMU noise fit after this much of keyframes (~100 IMU factors and a few
+# hundred ranges)
+ONLINE_FIRST_S = 10.0
+# s: the window an online fit looks at (bounds its work; noise levels do not change with time)
+ONLINE_WINDOW_S = 30.0
+
+# ---------------------------------------------------------------------------------------
+# Batch EM (`graph.offline`)
+# ---------------------------------------------------------------------------------------
+
+# LM iterations of an intermediate EM round: only close enough for the next E-step
+EM_ROUND_LM_ITERATIONS = 6
+# Newton steps of the two-parameter logistic fit of the NLOS classifier's weight
+CLASSIFIER_FIT_ITERATIONS = 25
+# 1/nats^2: keeps that fit's Hessian invertible when the log-odds are constant
+CLASSIFIER_FIT_RIDGE = 1e-6
+# switch: E-step LOS/NLOS hypothesis search per stretch (`_search_windows`); tests turn it off
+BATCH_SEARCH = True
+# nats: a stretch takes another LOS/NLOS assignment when it explains the ranges by this much
+BATCH_SEARCH_NATS = 20.0
+# s: length of a stretch of the E-step search
+BATCH_SEARCH_WINDOW_S = 5.0
+# LM stops when an iteration lowers the error by less than this fraction
+LM_RELATIVE_TOL = 1e-3
+# m: each anchor's range bias around the common one, as held in the LM rounds that free the
+# biases: looser, the anchors of a mostly blocked site take up NLOS excess EM left on LOS
+BATCH_ANCHOR_BIAS_SIGMA = 0.02
+# relative step of the log grid the range sigmas are rounded to (weights within ~1 %), so
+# that a range whose weight barely moved between EM rounds keeps its factor
+SIGMA_STEP = 0.005
+# s: held-out stretch of `graph.range_model = "auto"`: holds out a range with its neighbours
+# of the same NLOS episode (about 1 s); odometry bridges 2 s
+HELDOUT_BLOCK_S = 2.0
+# one stretch in eight per phase is held out: 7/8 of the ranges still fit
+HELDOUT_EVERY = 8
+# phases in the order they are held out
+HELDOUT_PHASES = (4, 0, 6, 2, 5, 1, 7, 3)
+# held-out ranges that end the cross-validation: their mean log score then has a standard
+# error of about 0.1 nats (per-range spread ~1 nat), below the gaps that decide
+MIN_SCORED_RANGES = 100
+# fewer held-out ranges than this cannot rank two models
+MIN_HELDOUT_RANGES = 20
+# m: a LOS range sigma beyond this is no UWB radio's
+MAX_ROBUST_SIGMA = 1.0
+
+# ---------------------------------------------------------------------------------------
+# Online smoother (`graph.builder`, `graph.estimator`, `graph.pose_factor`)
+# ---------------------------------------------------------------------------------------
+
+# m: anchors are known; a tight prior keeps them fixed
+ANCHOR_SIGMA = 1e-3
+# m: prior std of the common range bias in the online graph: at a log's start every anchor
+# may be in NLOS at once, and a loose prior takes that shared excess for a calibration offset
+ONLINE_COMMON_BIAS_SIGMA = 0.05
+# m: prior std of each anchor's range bias around the common one online: a few seconds of
+# ranges barely separate an offset from the position, and a loosely held one wanders
+ONLINE_ANCHOR_BIAS_SIGMA = 0.02
+# m/s: a start state faster than this is not trusted (implausible for an indoor vehicle or walker)
+ONLINE_MAX_START_SPEED = 3.0
+# ranges of an anchor per online scale update
+SCALE_BLOCK = 20
+# bound on a range scale error (relative)
+MAX_SCALE = 0.2
+# ranges the configured LOS sigma counts as in the online LOS sigma estimates (MAD of the
+# ranges classified LOS, `robust_los_sigma`: misclassified NLOS ranges would inflate an RMS)
+LOS_SIGMA_PRIOR_RANGES = 20.0
+# ns: an identical range of the same anchor within this is a copy
+REPEAT_WINDOW_NS = 150_000_000
+# one-step residuals the online robust sigma is the MAD of
+PREQUENTIAL_WINDOW = 1000
+# ranges before the online prequential scores start (the robust sigma needs them), and
+# scored ranges before their paired test may decide
+MIN_PREQUENTIAL_RANGES = 100
+# standard errors of the mean score advantage per range that change the online range model
+# (a one-sided paired test at about 0.1 %)
+PREQUENTIAL_Z = 3.0
+# keyframes per iSAM2 update in the seeding pass of `batch`
+BATCH_CHUNK = 10
+# s: ranges younger than this keep their insertion classification
+REVIEW_MIN_AGE_S = 0.5
+# switch: discrete LOS/NLOS hypothesis search in the review (see `_review`); tests turn it off
+SEARCH = True
+# nats: log-likelihood gain of a better LOS/NLOS assignment in the review's search
+SEARCH_SWITCH_NATS = 10.0
+# ... in this many consecutive reviews before it is adopted
+SEARCH_PERSIST = 3
+# s: ranges this close to leaving the lag window are no longer reviewed
+REVIEW_MARGIN_S = 0.5
+# s: age of a keyframe's ranges when their residuals at the smoothed estimate go into the
+# LOS sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
+SMOOTHED_STAT_AGE_S = 2.0
+# responsibility change that replaces the range's factors
+REVIEW_CHANGE = 0.25
+# update latencies `forget_before` keeps (16 min at 10 Hz)
+LIVE_LATENCY_KEPT = 10_000
+# 1/m^2 or 1/rad^2: information left in the directions a planar pose factor does not
+# constrain: small enough to be no constraint, large enough for a PD information
+NO_INFORMATION = 1e-8
+
+# ---------------------------------------------------------------------------------------
+# Kalman filters (`filters`)
+# ---------------------------------------------------------------------------------------
+
+# ns: longest stretch of time handled as one predict/update window
+MAX_WINDOW_NS = 100_000_000
+# ns: a range bit-identical to the previous one of its anchor within this is a re-publication
+# (some RTLS devices send every epoch twice, ~50 ms apart); noisy ranges never repeat to the bit
+REPEAT_NS = 150_000_000
+# m/s: initial velocity std when the start is not still
+MOVING_VELOCITY_SIGMA = 0.5
+# m/s: initial velocity std at a still start
+STILL_VELOCITY_SIGMA = 0.02
+# m/s: start speed above which the start counts as moving even when the log began still
+# (the start state may come seconds later, from a walk)
+MOVING_START_SPEED = 0.05
+# rad: initial roll/pitch std when still (levelled from gravity)
+TILT_SIGMA_STILL = 0.02
+# rad: initial roll/pitch std when moving (a guess)
+TILT_SIGMA_MOVING = 0.05
+# m^2: largest position variance after recoveries
+INFLATE_CAP_POS = 100.0
+# (m/s)^2: largest velocity variance after recoveries
+INFLATE_CAP_VEL = 25.0
+# m: smallest initial height std
+Z_SIGMA_MIN = 0.3
+# accepted ranges between two EM refits of the adaptive range mixture
+REFIT_EVERY = 200
+# accepted ranges (the newest) each refit uses
+WINDOW = 4000
+# ranges: weight of the configured per-range model in each refit
+PRIOR_RANGES = 200.0
+# measurement rows: weight of a configured wheel/planar variance
+PRIOR_ROWS = 200.0
+# measurement rows: memory of the running variance estimate (exponential forgetting)
+MEMORY_ROWS = 2000.0
+# floor of a matched variance as a share of the configured one: sampling noise can drive
+# E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid
+MIN_SHARE = 0.01
+# bounds of an anchor's prior NLOS probability (the chain never becomes certain)
+P_BOUNDS = (0.01, 0.99)
+# process-noise factors (on the stds) of the noise bank: log-uniform, ratio sqrt(10) over a
+# decade upwards; the configured figure is the floor (docs/results.md)
+FACTORS = (1.0, math.sqrt(10.0), 10.0)
+# nats: a bank member this far behind is dropped (posterior odds of 1e-4 under a flat prior)
+DROP_NATS = math.log(1e4)
+
+# ---------------------------------------------------------------------------------------
+# Output grid and live runs (`estimator`, `localizer`)
+# ---------------------------------------------------------------------------------------
+
+# epochs the output grid may have: 10^7 is 11.6 days at 10 Hz (about 1 kB each); more means
+# stamps on different clocks, not a long log
+MAX_EPOCHS = 10_000_000
+# s of epochs between the estimator's `forget_before` calls
+FORGET_EVERY_S = 10.0
