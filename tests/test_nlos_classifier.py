@@ -204,6 +204,12 @@ def test_classifier_separates_and_changes_estimates(tmp_path: Path) -> None:
                                     max_dt=0.05).ate_2d.rmse
     assert ate[Method.WLS, "with"] < 0.85 * ate[Method.WLS, "without"]
     assert ate[Method.ISAM2, "with"] != ate[Method.ISAM2, "without"]
+    # batch's EM (the mixture: its E-steps) weighs the log-odds by how well they predict
+    # this log's residual classes: a forest of AUC > 0.8 on this kind of log keeps a clear
+    # share of them
+    mixture = Config(nlos={"classifier": str(path)}, graph={"range_model": "mixture"})
+    report = estimate(test.log, Method.BATCH, mixture, covariance=False).report["batch"]
+    assert 0.3 <= report["nlos_classifier_weight"] <= 1.0
 
 
 def test_train_nlos_cli_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
