@@ -259,7 +259,7 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     res = estimate(sim.log, Method.ISAM2, Config())
     assert res.report["los_hypothesis_switches"] > 0
     with_search = _ate(res.trajectory, sim.log)
-    monkeypatch.setattr(graph_estimator, "SEARCH", False)
+    monkeypatch.setattr(graph_estimator, "REVIEW_SEARCH", False)
     without = _ate(estimate(sim.log, Method.ISAM2, Config()).trajectory, sim.log)
     assert with_search < 0.14
     assert without > 1.25 * with_search

@@ -121,7 +121,7 @@ WHEEL_OFFSET_MAX_PERIODS = 4.0
 # Wheel-track reference of the NLOS classifier (`positioning.wheel_reference`)
 # s: ranges in one fit. The wheel track's shape over 5 s (2.5 m at AGV speed) is good to a
 # few cm (1 % scale error), and 5 s holds ~50 ranges per anchor at 40 Hz over four anchors
-WINDOW_S = 5.0
+REFERENCE_WINDOW_S = 5.0
 # ranges of the other anchors a fit needs (three unknowns, robust)
 REFERENCE_MIN_RANGES = 8
 # s: a track carried further on the last twist is a guess
@@ -132,7 +132,7 @@ MIN_SPREAD_M = 0.5
 # below this share of ranges within 3 scales the fit has lost them
 MIN_INLIER_SHARE = 0.3
 # Gauss-Newton steps per fit (warm-started from the previous epoch)
-ITERATIONS = 8
+REFERENCE_ITERATIONS = 8
 # information (1/m^2, 1/m^2, 1/rad^2) on a fit's step from its warm start: keeps the yaw
 # of a still window (no lever arm) where it was, and is nothing against ~100 ranges at 0.1 m
 STEP_INFO = np.array([1e-6, 1e-6, 100.0])
@@ -328,7 +328,7 @@ BATCH_CHUNK = 10
 # s: ranges younger than this keep their insertion classification
 REVIEW_MIN_AGE_S = 0.5
 # switch: discrete LOS/NLOS hypothesis search in the review (see `_review`); tests turn it off
-SEARCH = True
+REVIEW_SEARCH = True
 # nats: log-likelihood gain of a better LOS/NLOS assignment in the review's search
 SEARCH_SWITCH_NATS = 10.0
 # ... in this many consecutive reviews before it is adopted
@@ -375,7 +375,7 @@ Z_SIGMA_MIN = 0.3
 # accepted ranges between two EM refits of the adaptive range mixture
 REFIT_EVERY = 200
 # accepted ranges (the newest) each refit uses
-WINDOW = 4000
+RANGE_NOISE_WINDOW = 4000
 # ranges: weight of the configured per-range model in each refit
 PRIOR_RANGES = 200.0
 # measurement rows: weight of a configured wheel/planar variance
@@ -384,12 +384,12 @@ PRIOR_ROWS = 200.0
 MEMORY_ROWS = 2000.0
 # floor of a matched variance as a share of the configured one: sampling noise can drive
 # E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid
-MIN_SHARE = 0.01
+MATCHED_VARIANCE_MIN_SHARE = 0.01
 # bounds of an anchor's prior NLOS probability (the chain never becomes certain)
 P_BOUNDS = (0.01, 0.99)
 # process-noise factors (on the stds) of the noise bank: log-uniform, ratio sqrt(10) over a
 # decade upwards; the configured figure is the floor (docs/results.md)
-FACTORS = (1.0, math.sqrt(10.0), 10.0)
+NOISE_BANK_FACTORS = (1.0, math.sqrt(10.0), 10.0)
 # nats: a bank member this far behind is dropped (posterior odds of 1e-4 under a flat prior)
 DROP_NATS = math.log(1e4)
 

@@ -16,11 +16,11 @@ range is its last posterior carried through a two-state Markov chain: (1 - q) p_
 q p_nlos, with q the switching rate.
 
 Every parameter comes from the log: the mixture is re-fitted by EM (`fit_nlos_mixture`)
-over the innovations of the last `WINDOW` accepted ranges every `REFIT_EVERY` ranges, with
-the model's per-range values (`[nlos] range_*`) as a prior worth `PRIOR_RANGES` ranges; the
-switching rate is the expected number of LOS/NLOS changes between consecutive ranges of an
-anchor (from the posteriors), with the model's `p_switch` (`[nlos] switch`) as its prior,
-same weight.
+over the innovations of the last `RANGE_NOISE_WINDOW` accepted ranges every `REFIT_EVERY`
+ranges, with the model's per-range values (`[nlos] range_*`) as a prior worth
+`PRIOR_RANGES` ranges; the switching rate is the expected number of LOS/NLOS changes
+between consecutive ranges of an anchor (from the posteriors), with the model's `p_switch`
+(`[nlos] switch`) as its prior, same weight.
 
 Gating: a range whose squared innovation, after the mixture correction, exceeds the
 chi-square quantile of `[filter] gate_probability` times its variance (mixture plus
@@ -48,14 +48,14 @@ import numpy as np
 
 from uwbfuse.config import Config
 from uwbfuse.constants import (
+    MATCHED_VARIANCE_MIN_SHARE,
     MEMORY_ROWS,
     MIN_LOS_STD,
-    MIN_SHARE,
     P_BOUNDS,
     PRIOR_RANGES,
     PRIOR_ROWS,
+    RANGE_NOISE_WINDOW,
     REFIT_EVERY,
-    WINDOW,
 )
 from uwbfuse.filters.models import F64, gate_threshold
 from uwbfuse.nlos import NlosModel, NlosParams, fit_nlos_mixture, nlos_probability
@@ -115,8 +115,8 @@ class RangeNoise:
         self._switch_sum = 0.0
         self._switch_n = 0
         self._seen = np.zeros(n_anchor, dtype=bool)
-        self._y = np.zeros(WINDOW)
-        self._s = np.zeros(WINDOW)
+        self._y = np.zeros(RANGE_NOISE_WINDOW)
+        self._s = np.zeros(RANGE_NOISE_WINDOW)
         # common range scale (ranges read `scale` x the distance): the start solve's
         # (`set_start_scale`), then at every refit the LOS-weighted least-squares fit of the
         # ranges as read to the predicted distances of all accepted ranges so far, with the
@@ -200,7 +200,7 @@ class RangeNoise:
         self._seen[a] = True
         yy, ss = y[ok], s[ok]
         k = len(yy)
-        idx = (self._n + np.arange(k)) % WINDOW
+        idx = (self._n + np.arange(k)) % RANGE_NOISE_WINDOW
         self._y[idx] = yy
         self._s[idx] = ss
         self._n += k
@@ -246,7 +246,7 @@ class RangeNoise:
             self._switch_n += 1
         self.p_last[anchor] = p
         self._seen[anchor] = True
-        idx = self._n % WINDOW
+        idx = self._n % RANGE_NOISE_WINDOW
         self._y[idx] = y
         self._s[idx] = s
         self._n += 1
@@ -255,7 +255,7 @@ class RangeNoise:
             self._refit()
 
     def _refit(self) -> None:
-        n = min(self._n, WINDOW)
+        n = min(self._n, RANGE_NOISE_WINDOW)
         self.model = fit_nlos_mixture(self._y[:n], self._s[:n], self.prior, PRIOR_RANGES)
         self.q = float(np.clip(
             (self._switch_sum + PRIOR_RANGES * self.q0) / (self._switch_n + PRIOR_RANGES),
@@ -297,7 +297,7 @@ class InnovationVariance:
         self._num = decay * self._num + np.sum(np.maximum(y * y - s, 0.0), axis=0)
         self._den = decay * self._den + n
         r = (self._num + PRIOR_ROWS * self.prior) / (self._den + PRIOR_ROWS)
-        self.r = np.maximum(r, MIN_SHARE * self.prior)
+        self.r = np.maximum(r, MATCHED_VARIANCE_MIN_SHARE * self.prior)
 
 
 def scalar_update(

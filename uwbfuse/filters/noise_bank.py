@@ -12,8 +12,8 @@ level (Schweppe 1965), so the level that predicts the log's own measurements bes
 maximum-likelihood estimate.
 
 `ProcessNoiseBank` runs the IMU-driven filter from its start state at the configured
-`[filter] imu_noise_inflation` times each of `FACTORS` (copies of one filter, split at its
-start) and answers, at every step, with the member whose likelihood so far is highest
+`[filter] imu_noise_inflation` times each of `NOISE_BANK_FACTORS` (copies of one filter, split
+at its start) and answers, at every step, with the member whose likelihood so far is highest
 (multiple-model adaptive estimation with a flat prior over the grid, the most probable
 model's estimate). A member whose likelihood falls `DROP_NATS` below the best is
 dropped: its posterior probability is then below exp(-DROP_NATS) and stays so, so after
@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from uwbfuse.constants import DROP_NATS, FACTORS
+from uwbfuse.constants import DROP_NATS, NOISE_BANK_FACTORS
 from uwbfuse.estimator import EstimatorBase, PoseEstimate
 from uwbfuse.filters.ekf import ErrorStateEkf
 from uwbfuse.positioning.nlos_classifier import RangePriors
@@ -89,7 +89,7 @@ class ProcessNoiseBank(EstimatorBase):
         """Copy the started filter once per factor (same state, same history)."""
         primary = self.members[0]
         members, factors = [], []
-        for f in FACTORS:
+        for f in NOISE_BANK_FACTORS:
             m = primary if f == 1.0 else copy.deepcopy(primary)
             if f != 1.0:
                 m.scale_process_noise(f)
@@ -97,7 +97,7 @@ class ProcessNoiseBank(EstimatorBase):
             factors.append(f)
         self.members, self.factors = members, factors
         self._base = [m.log_likelihood() for m in members]
-        self.best = FACTORS.index(1.0)
+        self.best = NOISE_BANK_FACTORS.index(1.0)
         self.split = True
 
     @property

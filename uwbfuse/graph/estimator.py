@@ -57,7 +57,7 @@ from uwbfuse.constants import (
     REVIEW_CHANGE,
     REVIEW_MARGIN_S,
     REVIEW_MIN_AGE_S,
-    SEARCH,
+    REVIEW_SEARCH,
     SEARCH_PERSIST,
     SEARCH_SWITCH_NATS,
     SMOOTHED_STAT_AGE_S,
@@ -432,7 +432,7 @@ class GraphEstimator(EstimatorBase):
         r_los = z - h - d
         r_nlos = z - h - e
         g_cur = np.concatenate([rb.g for rb in batches])
-        if SEARCH:
+        if REVIEW_SEARCH:
             r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur)
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         ll_n = ll_n + np.concatenate([rb.evidence for rb in batches])  # the classifier's

@@ -2,7 +2,7 @@
 """The NLOS classifier's causal reference on wheeled logs: the wheel track placed in the map
 by a robust fit to the ranges of the last few seconds, without the range's own anchor.
 
-For each epoch (the WLS epochs of `nlos_classifier`), the ranges of the last `WINDOW_S`
+For each epoch (the WLS epochs of `nlos_classifier`), the ranges of the last `REFERENCE_WINDOW_S`
 seconds up to and including the epoch are fitted with one planar rigid transform (x, y,
 yaw) that carries the wheel track's tag positions into the map frame: the wheel track gives
 the shape of the path over the window to a few cm, the ranges only its place and heading,
@@ -32,13 +32,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.constants import (
-    ITERATIONS,
     MAX_WHEEL_GAP_S,
     MIN_INLIER_SHARE,
     MIN_SPREAD_M,
+    REFERENCE_ITERATIONS,
     REFERENCE_MIN_RANGES,
+    REFERENCE_WINDOW_S,
     STEP_INFO,
-    WINDOW_S,
 )
 from uwbfuse.positioning.wheel_track import WheelTrack, arc_steps
 from uwbfuse.streams import NS_PER_S, WheelStream
@@ -103,7 +103,7 @@ def _fit(tf: F64, q: F64, anchor_xy: F64, d: F64, use: NDArray[np.bool_], scale:
     nb = len(x)
     w_use = use.astype(np.float64)
     share = np.zeros(nb)
-    for it in range(ITERATIONS):
+    for it in range(REFERENCE_ITERATIONS):
         m = _apply(x, np.broadcast_to(q, (nb, *q.shape)))  # (B,n,2)
         diff = m - anchor_xy
         r = np.linalg.norm(diff, axis=-1)
@@ -148,7 +148,7 @@ def wheel_reference(
     wt_ns = np.asarray(wheel.t_ns, np.int64)
     gap_end = wt_ns[1:][np.diff(wt_ns) > round(MAX_WHEEL_GAP_S * NS_PER_S)]
     seg = np.searchsorted(gap_end, ep, side="right") - 1  # the wheel segment of each epoch
-    start = ep - round(WINDOW_S * NS_PER_S)
+    start = ep - round(REFERENCE_WINDOW_S * NS_PER_S)
     if len(gap_end):
         start = np.maximum(start, np.where(seg >= 0, gap_end[np.maximum(seg, 0)] - 1, start))
     lo_r = np.searchsorted(t_ns, start, side="right")
