@@ -173,9 +173,10 @@ def estimate(
     `batch` or `isam2-smoothed` whose whole-graph held-out choice picked a robust range
     model runs once more over the whole log (`whole_log_refit`)."""
     # the classifier's priors once for both passes (they differ only in [graph])
-    priors = _classifier_priors(log, config, check_inputs(log, method, config))
+    streams = check_inputs(log, method, config)
+    priors = _classifier_priors(log, config, streams)
     first = _estimate_once(log, method, config, progress, covariance, priors)
-    refit = whole_log_refit(method, config, first.report, log)
+    refit = whole_log_refit(method, config, first.report, log, streams)
     if refit is None:
         return first
     second = _estimate_once(log, method, refit, None, covariance, priors)
@@ -193,8 +194,8 @@ def _full_graph_report(report: dict) -> dict:
     return report.get("batch") or report.get("final_smoothing") or {}
 
 
-def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
-                    ) -> Config | None:
+def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog,
+                    streams: frozenset[str]) -> Config | None:
     """The config of the second pass of batch (or isam2-smoothed, whose final smoothing
     solves the same whole graph), or None when there is none to run.
 
@@ -208,7 +209,8 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     user left both `graph.range_model` and `graph.start_backdate` at their defaults, on
     logs with wheels or an IMU to carry the start back (without wheels the IMU carries the
     attitude, a UWB fix gives the position), and where the first pass's graph started
-    after the first data.
+    after the first data. `streams`: the log's streams as `check_inputs` gives them (the
+    ones the estimators are built from).
     """
     g = config.graph
     fields = type(g).model_fields
@@ -217,7 +219,7 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     if (method not in (Method.BATCH, Method.ISAM2_SMOOTHED) or g.range_model != "auto"
             or g.start_backdate != fields["start_backdate"].default
             or not chosen.startswith("robust") or first_kf is None
-            or not any(s is not None and len(s) for s in (log.wheel, log.imu))):
+            or not streams & {"wheel", "imu"}):
         return None
     t0, _ = log.time_span_ns()
     back_s = (int(first_kf) - t0) / NS_PER_S
@@ -226,7 +228,7 @@ def whole_log_refit(method: Method, config: Config, report: dict, log: SensorLog
     # one keyframe period past the first data: the backdated start is clamped to it
     back_s += 1.0 / g.keyframe_rate
     update: dict[str, Any] = {"start_backdate": back_s}
-    if method is Method.ISAM2_SMOOTHED and not (log.wheel is not None and len(log.wheel)):
+    if method is Method.ISAM2_SMOOTHED and "wheel" not in streams:
         # without wheels the final smoothing's EM starts from isam2's own online classes,
         # which judge the backdated ranges against the still-poor early track: it keeps the
         # first pass's choice. With wheels EM starts NLOS-first (`offline.solve`), free of

@@ -620,6 +620,8 @@ def classifier_weight(g_resid: np.ndarray, evidence: np.ndarray) -> float:
     log-odds. A classifier that ranks this log's ranges as its residuals do keeps its
     log-odds (1: taken at face value, the most it gets); one at chance on this log (a
     forest trained on other sites) gets ~0 and leaves EM to the residuals."""
+    # two parameters on soft labels by Newton: scikit-learn's LogisticRegression takes hard
+    # labels only (every range twice with weights g, 1 - g) and is regularised by default
     x = np.column_stack([np.ones(len(evidence)), evidence])
     beta = np.zeros(2)
     for _ in range(CLASSIFIER_FIT_ITERATIONS):
