@@ -25,17 +25,22 @@ import numpy as np
 
 # m: path length before a heading is attempted
 MIN_TRAVEL_M = 2.0
-# ranges a start solve needs before it is attempted
+# ranges a start solve needs: 6 per unknown (x, y, yaw, common offset, common scale), the
+# redundancy of its robust (soft-L1) fit
 START_MIN_RANGES = 30
 # yaw seeds of the start solve, 45 deg apart (its cost is multimodal in yaw)
 N_SEEDS = 8
-# m: robust residual scale of an accepted start solution
+# m: robust rms of an accepted start: a right solution's holds LOS noise (0.03-0.1 m) and NLOS
+# excess (~0.3 m); a wrong yaw misplaces the track by about its extent (>= MIN_TRAVEL_M)
 MAX_RMS_M = 0.5
-# ... or this fraction of the median range on large sites
+# ... or 3 % of the median range (above 17 m): range errors grow with distance (NLOS paths,
+# weaker signal), and so does the wheel track's 1-3 % scale error over site-size paths
 MAX_RMS_REL = 0.03
-# second-best minimum must be this much worse (cost ratio): otherwise the yaw is ambiguous
+# cost ratio the second-best yaw minimum must exceed: chi-square-like costs of 30 ranges (25-30
+# dof) differ by 2x at the 95-97 % point of F by chance; 99.97 % at 100 ranges
 MIN_COST_RATIO = 2.0
-# ranges a standstill fix (`solve_static`) needs
+# ranges a standstill fix needs: 3 unknowns (x, y, common scale) and 5 of redundancy for the
+# robust fit, two per anchor at STATIC_MIN_ANCHORS
 STATIC_MIN_RANGES = 8
 # anchors a standstill fix needs: x, y and a common scale, plus one range of redundancy
 STATIC_MIN_ANCHORS = 4
@@ -45,17 +50,21 @@ STATIC_MAX_RANGES = 2000
 STATIC_MAX_SPEED = 0.05
 # rad/s: ... and under this yaw rate (above odometry noise at rest)
 STATIC_MAX_YAW_RATE = 0.05
-# m: the dead-reckoned track stays within this of where it was at the first range (standstill)
+# m: largest dead-reckoned drift of a standstill (its ranges are fitted as from one point):
+# 3x the noisiest LOS range noise (0.1 m), within the ranges' spread; more is motion
 STATIC_MAX_DRIFT_M = 0.3
-# rad: ... and turns by at most this
+# rad: ... and turn: 0.3 rad moves a tag 1 m off the turning centre by 0.3 m, the drift bound
 STATIC_MAX_TURN_RAD = 0.3
-# bound on a standstill fix's common range scale error (relative)
+# bound on a standstill fix's common range scale: a guard (clocks err by ppm, radios met read a
+# few % long); beyond 15 % a fit on few anchors trades position for scale
 STATIC_MAX_SCALE = 0.15
 # m: anchors spread over this much height observe the tag's height
 HEIGHT_SPREAD_M = 1.0
-# s of ranges without a start before the wheel-track start solve is attempted
+# s of ranges before the wheel-track start: the initialiser needs fixes and 0.5 m of travel
+# (1 s at 0.5 m/s), the solve MIN_TRAVEL_M (4 s); 5 s without a start = too sparse for fixes
 FALLBACK_AFTER_S = 5.0
-# s of data between two attempts (start solve, standstill fix)
+# s of data between two attempts (start solve, standstill fix): a work bound (N_SEEDS
+# least-squares fits each); in a second an AGV adds ~0.5 m of track
 FALLBACK_RETRY_S = 1.0
 # ns: wheel data must reach this close to a standstill's ends
 STATIC_WHEEL_GAP_NS = 500_000_000
@@ -112,7 +121,8 @@ WHEEL_HUBER_K = 1.345
 # prior std of the speed and yaw-rate scale factors (1 = none): wheel radius and track width
 # are off by 1-3 % ordinarily
 WHEEL_SCALE_SIGMA = 0.05
-# the wheel factors are rebuilt when a scale moved this much (relative)
+# relative scale change that rebuilds the wheel factors: 25 um on a keyframe's 5 cm (0.5 m/s,
+# 0.1 s), far under its mm of noise; smaller is not worth the rebuild (work bound)
 WHEEL_SCALE_MIN_CHANGE = 5e-4
 # wheel sample periods: the farthest the batch time-offset search looks (a driver that
 # buffers stamps its samples a few periods late; farther is a clock fault, not an offset)
@@ -151,17 +161,20 @@ VIRTUAL_BIAS_SIGMA = 1e-3
 IMU_INFLATION_MAX_LOG2 = 8.0
 
 # Standstill detection of the filters' dead reckoning (`filters.dead_reckoning`)
-# s: longest span a pose is extrapolated past the last sample; beyond it the pose holds
+# s: longest extrapolation past the last sample: 25 periods of 50 Hz wheels; an AGV's 0.3 m/s^2
+# unmodelled over 0.5 s is 4 cm (UWB noise); a longer silence is a dropout
 MAX_EXTRAPOLATION_S = 0.5
-# s: window of the accel std / mean-shift motion test
+# s: window of the motion test: 40 samples at 200 Hz for a std, short against an AGV's speed-up
+# (0.5 m/s at 0.3 m/s^2 takes 1.7 s), so a start shows within a fraction of a second
 MOTION_WINDOW_S = 0.2
 # s: the still part ends this long before the first sample that shows motion: a jerk-limited
 # start is detected late, and its samples in the still means would tilt the levelling
 ONSET_GUARD_S = 1.0
-# standard errors (of the still samples' noise) a window mean must move to show motion; at
-# least MEAN_SHIFT_FLOOR, at most `init.standstill_accel_std_max`
+# standard errors (of the still samples' noise) a window mean must move to show motion: a
+# false alarm <= 6e-7 per window (chi-square 1 dof at 25), ~2e-4 per still minute
 MEAN_SHIFT_SIGMAS = 5.0
-# m/s^2: floor of that mean shift
+# m/s^2: floor of that shift, 2 mg: what a consumer MEMS accelerometer's bias moves in a few
+# degC of warm-up, or 2 mrad of tilt; far below a start's 0.1-1 m/s^2
 MEAN_SHIFT_FLOOR = 0.02
 
 # ---------------------------------------------------------------------------------------
@@ -185,9 +198,11 @@ JUMP_MAX_M = 1.0
 LOG_OUTLIER = math.log(0.02 / 20.0)
 # MAD -> standard deviation of a normal distribution (1 / Phi^-1(3/4))
 NORMAL_MAD_SCALE = 1.482602218505602
-# component weights below this add no factor
+# component weights below this add no factor: at 0.01 it has 10x its sigma, 1 % of a range's
+# information; skipping it halves the factors of clear-cut ranges (work bound)
 MIN_WEIGHT = 0.01
-# m: prior std of the track shift in `los_subset_search`
+# m: prior std of the track shift in `los_subset_search`: misclassified ranges pull a track by
+# about one NLOS excess ([nlos] excess_mean 0.3 m + excess_slow_sigma 0.13 m), not metres
 SEARCH_SHIFT_SIGMA = 0.5
 # m: least NLOS excess a `los_subset_search` hypothesis may need (below 0: room for LOS
 # biases that have absorbed some NLOS)
@@ -195,11 +210,14 @@ EXCESS_FLOOR = -0.2
 # `los_subset_search` solves 2^M subsets; with more anchors than this it is skipped (more
 # hypotheses, more spurious winners; anchors switch class inside the window)
 SEARCH_MAX_ANCHORS = 6
-# m: heard anchors closer than this (RMS) to one line in x, y count as collinear
+# m: anchors within this RMS of one line count as collinear (message only): the noisiest LOS
+# range noise; closer, a 2-D fix and its mirror image differ by less than the ranges resolve
 COLLINEAR_RMS_M = 0.1
-# DOP above which a fix counts as degenerate geometry
+# DOP above which a fix is degenerate: it errs by DOP x the range noise, 30 x (0.03-0.1 m) =
+# 1-3 m, no better than knowing the room
 MAX_DOP = 30.0
-# m: anchors whose z spread is below this are treated as coplanar in 3-D solves
+# m: anchors within this z spread are coplanar (a 3-D fix then starts from a 2-D solve below
+# them): 3x the noisiest LOS range noise (0.1 m); less leaves the linear solve's z ill-posed
 COPLANAR_SPREAD = 0.3
 
 # ---------------------------------------------------------------------------------------
@@ -234,7 +252,8 @@ MIN_EPOCH_WINDOW_S = 0.05
 # Noise levels fitted from the log's evidence (`graph.noise_fit`)
 # ---------------------------------------------------------------------------------------
 
-# log2: factor-of-2 grid steps of the noise search
+# log2: factor-2 grid steps of the noise search: 4 (wheels, 1..16) or 8 (IMU, 1..256) per
+# factor, one graph solve each (work bound); a parabola through three places the optimum
 NOISE_STEP = 1.0
 # log2: std of the log-normal hyperprior on each factor (the configured noise is right within
 # a factor 4 at one sd): where the evidence is flat the factor stays near 1
@@ -265,9 +284,11 @@ CLASSIFIER_FIT_ITERATIONS = 25
 CLASSIFIER_FIT_RIDGE = 1e-6
 # switch: E-step LOS/NLOS hypothesis search per stretch (`_search_windows`); tests turn it off
 BATCH_SEARCH = True
-# nats: a stretch takes another LOS/NLOS assignment when it explains the ranges by this much
+# nats: a stretch takes another LOS/NLOS assignment when it explains the ranges by this much;
+# chosen from simulated results, not derived (docs/results.md, "still chosen from results")
 BATCH_SEARCH_NATS = 20.0
-# s: length of a stretch of the E-step search
+# s: stretch of the E-step search: the NLOS excess's correlation time ([nlos] tau), over which
+# an anchor keeps its class, as the search assumes; ~50 ranges per anchor at 40 Hz over four
 BATCH_SEARCH_WINDOW_S = 5.0
 # LM stops when an iteration lowers the error by less than this fraction
 LM_RELATIVE_TOL = 1e-3
@@ -282,7 +303,8 @@ SIGMA_STEP = 0.005
 HELDOUT_BLOCK_S = 2.0
 # one stretch in eight per phase is held out: 7/8 of the ranges still fit
 HELDOUT_EVERY = 8
-# phases in the order they are held out
+# phases held out in bit-reversed order (+4 mod 8): each next one halves the gaps, so a stop
+# at MIN_SCORED_RANGES leaves them spread over the log; not 0 first (it lacks stretch 0)
 HELDOUT_PHASES = (4, 0, 6, 2, 5, 1, 7, 3)
 # held-out ranges that end the cross-validation: their mean log score then has a standard
 # error of about 0.1 nats (per-range spread ~1 nat), below the gaps that decide
@@ -306,16 +328,19 @@ ONLINE_COMMON_BIAS_SIGMA = 0.05
 ONLINE_ANCHOR_BIAS_SIGMA = 0.02
 # m/s: a start state faster than this is not trusted (implausible for an indoor vehicle or walker)
 ONLINE_MAX_START_SPEED = 3.0
-# ranges of an anchor per online scale update
+# ranges of an anchor per online scale step: 20 at 0.1 m noise pin k to 0.1 / (sqrt(20) d),
+# 0.2 % at d = 10 m, under the per-cent errors sought; 2 s of one anchor at 10 Hz
 SCALE_BLOCK = 20
-# bound on a range scale error (relative)
+# bound on a range scale error (relative): a guard (clocks err by ppm, radios met read a few %
+# long); a larger k is a Gauss-Newton step run away on poor geometry, not a radio
 MAX_SCALE = 0.2
 # ranges the configured LOS sigma counts as in the online LOS sigma estimates (MAD of the
 # ranges classified LOS, `robust_los_sigma`: misclassified NLOS ranges would inflate an RMS)
 LOS_SIGMA_PRIOR_RANGES = 20.0
 # ns: an identical range of the same anchor within this is a copy
 REPEAT_WINDOW_NS = 150_000_000
-# one-step residuals the online robust sigma is the MAD of
+# one-step residuals of the online robust sigma's MAD: 1000 give it to ~4 % (1.17 / sqrt(n),
+# normal) and are 25 s at 40 Hz, so it follows the site's changes
 PREQUENTIAL_WINDOW = 1000
 # ranges before the online prequential scores start (the robust sigma needs them), and
 # scored ranges before their paired test may decide
@@ -323,22 +348,28 @@ MIN_PREQUENTIAL_RANGES = 100
 # standard errors of the mean score advantage per range that change the online range model
 # (a one-sided paired test at about 0.1 %)
 PREQUENTIAL_Z = 3.0
-# keyframes per iSAM2 update in the seeding pass of `batch`
+# keyframes per iSAM2 update in batch's seeding pass: 1 s at 10 Hz; it needs no per-epoch
+# answer, so fewer, larger updates (work bound)
 BATCH_CHUNK = 10
-# s: ranges younger than this keep their insertion classification
+# s: younger ranges keep their insertion class: a review weighs the ranges after a range, and
+# 0.5 s brings ~5 more of its anchor (10 Hz) and the smoothed keyframes on both sides
 REVIEW_MIN_AGE_S = 0.5
 # switch: discrete LOS/NLOS hypothesis search in the review (see `_review`); tests turn it off
 REVIEW_SEARCH = True
-# nats: log-likelihood gain of a better LOS/NLOS assignment in the review's search
+# nats: log-likelihood gain of a better LOS/NLOS assignment in the review's search; chosen
+# from simulated results, not derived (docs/results.md, "still chosen from results")
 SEARCH_SWITCH_NATS = 10.0
-# ... in this many consecutive reviews before it is adopted
+# ... in this many consecutive reviews before it is adopted: 0.9 s (3 updates of 3 keyframes),
+# about one NLOS segment ([nlos] segment, 1 s), not one update's noise
 SEARCH_PERSIST = 3
-# s: ranges this close to leaving the lag window are no longer reviewed
+# s: ranges this close to leaving the lag window are not reviewed: a guard beyond the next
+# update's span, 5 keyframes (10 % of the 5 s lag) the smoother is not about to marginalise
 REVIEW_MARGIN_S = 0.5
-# s: age of a keyframe's ranges when their residuals at the smoothed estimate go into the
-# LOS sigma of the range factors (`GraphBuilder.add_smoothed_residuals`)
+# s: age at which a keyframe's residuals feed the smoothed LOS sigma: by then 2 s of later ranges
+# (two 1 s NLOS segments) are in its estimate, near its final one, inside the 5 s lag
 SMOOTHED_STAT_AGE_S = 2.0
-# responsibility change that replaces the range's factors
+# responsibility change (0..1) that replaces a range's factors: a quarter of its information
+# moved between LOS and NLOS; less is not worth an iSAM2 removal (work bound)
 REVIEW_CHANGE = 0.25
 # update latencies `forget_before` keeps (16 min at 10 Hz)
 LIVE_LATENCY_KEPT = 10_000
@@ -355,32 +386,43 @@ MAX_WINDOW_NS = 100_000_000
 # ns: a range bit-identical to the previous one of its anchor within this is a re-publication
 # (some RTLS devices send every epoch twice, ~50 ms apart); noisy ranges never repeat to the bit
 REPEAT_NS = 150_000_000
-# m/s: initial velocity std when the start is not still
+# m/s: initial velocity std of a moving start: its velocity is known to about an indoor
+# vehicle's cruise speed (AGV 0.5 m/s, walker ~1 m/s)
 MOVING_VELOCITY_SIGMA = 0.5
-# m/s: initial velocity std at a still start
+# m/s: ... of a still start, taken where the standstill tests end: an AGV gains 0.01-0.03 m/s
+# within one 0.1 s test block at 0.1-0.3 m/s^2
 STILL_VELOCITY_SIGMA = 0.02
 # m/s: start speed above which the start counts as moving even when the log began still
 # (the start state may come seconds later, from a walk)
 MOVING_START_SPEED = 0.05
 # rad: initial roll/pitch std when still (levelled from gravity)
 TILT_SIGMA_STILL = 0.02
-# rad: initial roll/pitch std when moving (a guess)
+# rad: initial roll/pitch std when moving (levelled from the mean accel): an AGV's 0.3-0.5
+# m/s^2 forward acceleration taken for gravity tilts it by a/g = 0.03-0.05 rad
 TILT_SIGMA_MOVING = 0.05
-# m^2: largest position variance after recoveries
+# m^2: largest position variance after recoveries, (10 m)^2, a room-to-hall site (5-40 m):
+# wider says no more and only worsens P's conditioning
 INFLATE_CAP_POS = 100.0
-# (m/s)^2: largest velocity variance after recoveries
+# (m/s)^2: largest velocity variance after recoveries, (5 m/s)^2: above any indoor vehicle's
+# or walker's speed (ONLINE_MAX_START_SPEED 3 m/s); wider says no more
 INFLATE_CAP_VEL = 25.0
-# m: smallest initial height std
+# m: smallest initial height std: anchors near one height see z through dz/r only (0.05-0.2,
+# tag 1 m below anchors 5-20 m away), 5-20x worse than x, y (>= 0.05 m); the graph's floor too
 Z_SIGMA_MIN = 0.3
-# accepted ranges between two EM refits of the adaptive range mixture
+# accepted ranges between two EM refits of the range mixture: a work bound, one EM over the
+# window per 5 s at 40 Hz, 5 % of the window renewed
 REFIT_EVERY = 200
-# accepted ranges (the newest) each refit uses
+# accepted ranges (the newest) each refit uses: 100 s at 40 Hz; at 20 % NLOS, 800 NLOS ranges
+# fix its std to ~2.5 % (1 / sqrt(2n)); a memory and EM work bound
 RANGE_NOISE_WINDOW = 4000
-# ranges: weight of the configured per-range model in each refit
+# ranges the configured per-range model counts as: a std from 200 is known to 5 % (1 /
+# sqrt(2n)), so it holds until the log has as many; 5 % of a full window
 PRIOR_RANGES = 200.0
-# measurement rows: weight of a configured wheel/planar variance
+# measurement rows a configured wheel/planar variance counts as: 200 give a variance to 10 %
+# (sqrt(2/n)), so it holds until the log has as many (4 s of 50 Hz wheels)
 PRIOR_ROWS = 200.0
-# measurement rows: memory of the running variance estimate (exponential forgetting)
+# measurement rows of the running variance's exponential memory: 2000 give it to 3 %; 40 s of
+# 50 Hz wheels (200 s of 10 Hz planar rows), so a change of floor or load is followed
 MEMORY_ROWS = 2000.0
 # floor of a matched variance as a share of the configured one: sampling noise can drive
 # E[y^2 - s] to zero or below, and a zero variance would make the constraint rigid
@@ -400,5 +442,6 @@ DROP_NATS = math.log(1e4)
 # epochs the output grid may have: 10^7 is 11.6 days at 10 Hz (about 1 kB each); more means
 # stamps on different clocks, not a long log
 MAX_EPOCHS = 10_000_000
-# s of epochs between the estimator's `forget_before` calls
+# s of epochs between `forget_before` calls: a work bound (one per 100 epochs at 10 Hz); memory
+# swings between the 2 x lag kept (10 s at the default lag) and 10 s more
 FORGET_EVERY_S = 10.0
