@@ -56,6 +56,37 @@ def test_wheel_covariance_grows_and_factor_is_native():
     assert isinstance(f, gtsam.BetweenFactorPose3)
 
 
+def test_wheel_factors_built_at_once_carry_each_interval_covariance():
+    """Test that `between_factors` (every wheel factor of a graph at once) gives each factor
+    the Pose3 covariance laid out by hand (rx, ry, rz, tx, ty, tz: x, y, theta into tx,
+    ty, rz; roll, pitch, z from the out-of-plane sigmas; the 1e-6 floor), and the Huber
+    kernel when asked."""
+    from uwbfuse.graph.keys import X
+    from uwbfuse.graph.wheel import between_factors
+
+    rng = np.random.default_rng(5)
+    a = rng.standard_normal((4, 3, 3))
+    cov = a @ a.transpose(0, 2, 1) * 1e-3
+    delta = rng.standard_normal((4, 3))
+    oop = (0.01, 0.02, 0.03)
+    factors = between_factors([X(k) for k in range(4)], [X(k + 1) for k in range(4)],
+                              delta, cov, oop, robust_k=1.345)
+    assert len(factors) == 4
+    for k, f in enumerate(factors):
+        want = np.diag([oop[0] ** 2, oop[1] ** 2, 1e-6, 1e-6, 1e-6, oop[2] ** 2])
+        ix = [3, 4, 2]
+        want[np.ix_(ix, ix)] += cov[k]
+        want += np.eye(6) * 1e-12  # the Gaussian's diagonal floor
+        noise = f.noiseModel()
+        assert isinstance(noise, gtsam.noiseModel.Robust)
+        np.testing.assert_allclose(noise.noise().covariance(), want, rtol=1e-9, atol=1e-15)
+        assert f.keys() == [X(k), X(k + 1)]
+        m = f.measured()
+        np.testing.assert_allclose([m.x(), m.y(), m.rotation().yaw()], delta[k], atol=1e-12)
+    plain = between_factors([X(0)], [X(1)], delta[:1], cov[:1], oop)[0]
+    assert not isinstance(plain.noiseModel(), gtsam.noiseModel.Robust)
+
+
 def test_wheel_covariance_matches_monte_carlo():
     """Test the propagated (x, y, theta) covariance of a turning interval against 20,000
     noisy re-integrations of its pieces (forward, lateral, yaw noise per piece)."""

@@ -56,6 +56,7 @@ from uwbfuse.graph.uwb import huber_log_density, los_bias_key, nlos_state_factor
 from uwbfuse.graph.wheel import (
     WheelTrack,
     between_factor,
+    between_factors,
     planar_covariance6,
     se2_between,
     se2_to_pose3,
@@ -832,10 +833,11 @@ class GraphBuilder:
             delta = self.wheel.between(t_a, t_b)
             c = np.array([noise_scale[0], noise_scale[0], noise_scale[1]])
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel) * np.outer(c, c)
-            for j, (ka, idx) in enumerate(zip(wr.k, wr.index, strict=True)):
-                wr.delta[j], wr.cov[j] = delta[j], cov[j]
-                self.full_graph.replace(idx, between_factor(
-                    X(ka), X(ka + 1), wr.delta[j], wr.cov[j], wr.out_of_plane, WHEEL_HUBER_K))
+            wr.delta[:], wr.cov[:] = list(delta), list(cov)
+            factors = between_factors([X(ka) for ka in wr.k], [X(ka + 1) for ka in wr.k],
+                                      delta, cov, wr.out_of_plane, WHEEL_HUBER_K)
+            for idx, factor in zip(wr.index, factors, strict=True):
+                self.full_graph.replace(idx, factor)
         rec = self.records
         full = [j for j, ks in enumerate(rec.k) if len(ks)]
         if full:  # every range's tag from its keyframe at once

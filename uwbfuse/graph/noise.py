@@ -68,8 +68,9 @@ def pose_sigmas(rot: tuple[float, float, float], trans: tuple[float, float, floa
     return np.array([*rot, *trans], dtype=np.float64)
 
 
-def gaussian_covariance(cov: np.ndarray) -> gtsam.noiseModel.Gaussian:
-    """Full Gaussian from a covariance matrix (symmetrised, floored on the diagonal)."""
-    c = 0.5 * (cov + cov.T)
-    c = c + np.eye(len(c)) * 1e-12
-    return gtsam.noiseModel.Gaussian.Covariance(c)
+def gaussian_covariances(cov: np.ndarray) -> np.ndarray:
+    """Covariance matrices (..., n, n) as a full Gaussian takes them: symmetrised and
+    floored on the diagonal (1e-12, in the variable's squared units)."""
+    c = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    return c + np.eye(cov.shape[-1]) * 1e-12
+

@@ -76,12 +76,11 @@ def wheel_family(wheel: WheelRecords) -> NoiseFamily:
 
     def apply(graph: gtsam.NonlinearFactorGraph, f: tuple[float, ...]) -> float:
         c = np.array([f[0], f[0], f[1]])
-        scaled = [cov * np.outer(c, c) for cov in wheel.cov]
-        half = sum(0.5 * float(np.linalg.slogdet(planar_covariance6(
-            cs, wheel.out_of_plane))[1]) for cs in scaled)
-        replace_wheel_factors([graph], wheel.k, wheel.delta, scaled, wheel.index,
+        scaled = np.asarray(wheel.cov) * np.outer(c, c)
+        logdet = np.linalg.slogdet(planar_covariance6(scaled, wheel.out_of_plane))[1]
+        replace_wheel_factors([graph], wheel.k, np.asarray(wheel.delta), scaled, wheel.index,
                               wheel.out_of_plane)
-        return half
+        return sum((0.5 * logdet).tolist())
 
     return NoiseFamily("wheel", apply, 2, WHEEL_NOISE_MAX_LOG2, WHEEL_NOISE_TEST_NATS)
 

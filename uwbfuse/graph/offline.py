@@ -61,7 +61,7 @@ from uwbfuse.graph.uwb import (
     nlos_state_factors,
     range_factor_keyed,
 )
-from uwbfuse.graph.wheel import between_factor
+from uwbfuse.graph.wheel import between_factors
 from uwbfuse.nlos import NlosModel, hmm_smooth
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -175,21 +175,23 @@ class _WheelScale:
             return False
         sv, sw = (float(x) for x in self.scale)
         c = np.array([sv, sv, sw])
-        replace_wheel_factors(graphs, self.k.tolist(), [d * c for d in self.delta],
-                              [cov * np.outer(c, c) for cov in self.cov],
+        replace_wheel_factors(graphs, self.k.tolist(), self.delta * c,
+                              self.cov * np.outer(c, c),
                               self.index.tolist(), self.out_of_plane)
         self.applied = self.scale.copy()
         return True
 
 
 def replace_wheel_factors(
-    graphs: list[gtsam.NonlinearFactorGraph], k: list[int], delta: list[np.ndarray],
-    cov: list[np.ndarray], index: list[int], out_of_plane: tuple[float, float, float],
+    graphs: list[gtsam.NonlinearFactorGraph], k: list[int], delta: np.ndarray,
+    cov: np.ndarray, index: list[int], out_of_plane: tuple[float, float, float],
 ) -> None:
     """Replace, in each of `graphs`, factor `index[i]` by the wheel factor X(k) -> X(k + 1)
     of planar delta[i] (x m, y m, theta rad) and covariance cov[i] (3x3)."""
-    for kk, d, c, idx in zip(k, delta, cov, index, strict=True):
-        f = between_factor(X(kk), X(kk + 1), d, c, out_of_plane, WHEEL_HUBER_K)
+    keys = [X(kk) for kk in k]
+    factors = between_factors(keys, [X(kk + 1) for kk in k], np.asarray(delta),
+                              np.asarray(cov), out_of_plane, WHEEL_HUBER_K)
+    for f, idx in zip(factors, index, strict=True):
         for graph in graphs:
             graph.replace(idx, f)
 

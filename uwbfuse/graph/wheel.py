@@ -15,7 +15,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from uwbfuse.graph.noise import gaussian_covariance
+from uwbfuse.graph.noise import gaussian_covariances
 from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
     WheelTrack,
     _arcs,
@@ -32,16 +32,53 @@ def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
 def planar_covariance6(
     cov_xyt: np.ndarray, out_of_plane_sigmas: tuple[float, float, float]
 ) -> np.ndarray:
-    """Pose3 tangent covariance (rot, trans) of a planar delta with covariance `cov_xyt` in
-    (x, y, theta) and out-of-plane (roll rad, pitch rad, z m) sigmas."""
-    cov6 = np.zeros((6, 6))
+    """Pose3 tangent covariance (rot, trans) of planar deltas with covariance `cov_xyt` in
+    (x, y, theta), (3,3) or (n,3,3), and out-of-plane (roll rad, pitch rad, z m) sigmas:
+    (6,6) or (n,6,6)."""
+    c = np.asarray(cov_xyt, dtype=np.float64)
+    one = c.ndim == 2
+    c = c[None] if one else c
+    cov6 = np.zeros((len(c), 6, 6))
     sr, sp, sz = out_of_plane_sigmas
-    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
-    ix = [3, 4, 2]
-    cov6[np.ix_(ix, ix)] = cov_xyt
+    cov6[:, 0, 0], cov6[:, 1, 1], cov6[:, 5, 5] = sr**2, sp**2, sz**2
+    ix = np.array([3, 4, 2])
+    cov6[:, ix[:, None], ix[None, :]] = c
     # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
     cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
-    return cov6
+    return cov6[0] if one else cov6
+
+
+def between_factors(
+    key_a: list[int] | np.ndarray,
+    key_b: list[int] | np.ndarray,
+    delta: np.ndarray,
+    cov_xyt: np.ndarray,
+    out_of_plane_sigmas: tuple[float, float, float],
+    robust_k: float | None = None,
+) -> list[gtsam.BetweenFactorPose3]:
+    """BetweenFactorPose3 key_a[i] -> key_b[i] for planar deltas (n,3) with covariances
+    (n,3,3) in (x, y, theta).
+
+    `out_of_plane_sigmas` are (roll rad, pitch rad, z m) sigmas of the same interval;
+    `robust_k` (whitened units) wraps each Gaussian in a Huber kernel against wheel slip.
+    Tangent order of Pose3 in GTSAM: (rx, ry, rz, tx, ty, tz). The covariances are built
+    for all factors at once (batch rebuilds every wheel factor several times: per factor,
+    numpy's call overhead was half of the construction); only the GTSAM objects are made
+    one by one.
+    """
+    cov6 = gaussian_covariances(planar_covariance6(np.asarray(cov_xyt).reshape(-1, 3, 3),
+                                                   out_of_plane_sigmas))
+    # wheel slip: a disagreeing interval (IMU, ranges) loses weight instead of dragging the
+    # trajectory (one stateless kernel shared by the factors)
+    huber = None if robust_k is None else gtsam.noiseModel.mEstimator.Huber.Create(robust_k)
+    out = []
+    for ka, kb, d, c in zip(np.asarray(key_a).tolist(), np.asarray(key_b).tolist(),
+                            np.asarray(delta).reshape(-1, 3), cov6, strict=True):
+        noise = gtsam.noiseModel.Gaussian.Covariance(c)
+        if huber is not None:
+            noise = gtsam.noiseModel.Robust.Create(huber, noise)
+        out.append(gtsam.BetweenFactorPose3(ka, kb, se2_to_pose3(d), noise))
+    return out
 
 
 def between_factor(
@@ -52,16 +89,6 @@ def between_factor(
     out_of_plane_sigmas: tuple[float, float, float],
     robust_k: float | None = None,
 ) -> gtsam.BetweenFactorPose3:
-    """BetweenFactorPose3 for a planar delta with covariance in (x, y, theta).
-
-    `out_of_plane_sigmas` are (roll rad, pitch rad, z m) sigmas of the same interval;
-    `robust_k` (whitened units) wraps the Gaussian in a Huber kernel against wheel slip.
-    Tangent order of Pose3 in GTSAM: (rx, ry, rz, tx, ty, tz).
-    """
-    noise = gaussian_covariance(planar_covariance6(cov_xyt, out_of_plane_sigmas))
-    if robust_k is not None:
-        # wheel slip: a disagreeing interval (IMU, ranges) loses weight instead of
-        # dragging the trajectory
-        noise = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(robust_k), noise)
-    return gtsam.BetweenFactorPose3(key_a, key_b, se2_to_pose3(delta), noise)
+    """One `between_factors` factor (a planar delta (3,) with covariance (3,3))."""
+    return between_factors([key_a], [key_b], delta, cov_xyt, out_of_plane_sigmas,
+                           robust_k)[0]
