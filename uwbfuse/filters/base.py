@@ -58,6 +58,7 @@ class InitialStateLike(Protocol):
     still: bool
     range_scale: float            # ranges read range_scale x the distance (1 = none)
     range_sigma: float            # m, spread of the start solve's range residuals
+    range_scale_sigma: float      # 1-sigma of range_scale (inf: not solved)
 
 
 class InitialiserLike(Protocol):
@@ -528,6 +529,17 @@ class StreamingFilter(EstimatorBase):
             var = np.append(var, self.config.graph.range_scale_sigma**2)
         return var
 
+
+    def start_bias_variance(self, state: InitialStateLike) -> F64:
+        """`bias_variance` at the start `state`: the common range-scale error's variance is
+        the start solve's own where that is smaller than `[graph] range_scale_sigma`^2 (the
+        scale state has no process noise: a 5 % prior lets one gross range at the start,
+        read as a 15 % scale, pass the gate and pin a wrong scale)."""
+        var = self.bias_variance()
+        s = float(state.range_scale_sigma)
+        if self.scale_state and 0.0 < s < math.inf:
+            var[-1] = min(float(var[-1]), s * s)
+        return var
 
     def imu_grid(
         self, t_b: int, meas_t: np.ndarray

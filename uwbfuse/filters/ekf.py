@@ -219,7 +219,8 @@ class ErrorStateEkf(StreamingFilter):
         r_bi = imu_rotation(self.config.extrinsics.imu_in_base)
         self.bg = r_bi @ np.asarray(state.gyro_bias, dtype=np.float64)
         self.ba = r_bi @ np.asarray(state.accel_bias, dtype=np.float64)
-        self.P = augment(initial_covariance(state, self.config), self.bias_variance())
+        self.P = augment(initial_covariance(state, self.config),
+                         self.start_bias_variance(state))
         self.z0 = float(self.p[2])
 
     # -- predict / update over one window ----------------------------------------------
@@ -447,7 +448,7 @@ class UnicycleEkf(StreamingFilter):
         self.z0 = float(state.position[2])
         ps = max(state.position_sigma, 0.05) ** 2
         self.P = augment(np.diag([ps, ps, max(state.yaw_sigma, 1e-3) ** 2]),
-                         self.bias_variance())
+                         self.start_bias_variance(state))
 
     def _window(
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,

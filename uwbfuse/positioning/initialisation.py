@@ -106,7 +106,9 @@ class InitialState:
     scale of the ranges found by the start solve (ranges read range_scale x the distance;
     1.0 where not solved), for estimators that want to correct radios that read long;
     range_sigma: robust spread (MAD) of the start solve's range residuals, m, never below
-    `uwb.sigma` (0 where not solved): the range noise the site actually shows.
+    `uwb.sigma` (0 where not solved): the range noise the site actually shows;
+    range_scale_sigma: 1-sigma of range_scale (relative) as the start solve determined it
+    (its least-squares std; inf where it did not solve a scale).
     """
 
     t_ns: int
@@ -120,6 +122,7 @@ class InitialState:
     still: bool
     range_scale: float = 1.0
     range_sigma: float = 0.0
+    range_scale_sigma: float = math.inf
 
     @property
     def yaw(self) -> float:
@@ -1083,6 +1086,7 @@ def accept_start(
         yaw_sigma=min(yaw_sigma, math.pi), still=still,
         range_scale=1.0 + float(x[i_k]) if n_k else 1.0,
         range_sigma=max(mad, 1.0) * sig,
+        range_scale_sigma=float(np.sqrt(max(cov[i_k, i_k], 0.0))) if n_k else math.inf,
     )
     consistent = mad <= lim and inliers >= 0.6
     # After a full window without a determined heading, start anyway with the best
