@@ -94,11 +94,11 @@ def solve_start(
         r = least_squares(resid, [p0[0], p0[1], yaw0, 0.0, 0.0], loss="soft_l1", f_scale=0.2,
                           max_nfev=300, bounds=([-np.inf] * 3 + [-1.0, -0.15],
                                                 [np.inf] * 3 + [1.0, 0.15]))
-        sols.append((float(r.cost), r.x))
+        sols.append((float(r.cost), r.x, r.jac))
     sols.sort(key=lambda c_x: c_x[0])
-    best_cost, best = sols[0]
+    best_cost, best, jac = sols[0]
     yaw_b = best[2]
-    other = [c for c, x in sols[1:] if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > 0.2]
+    other = [c for c, x, _ in sols[1:] if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > 0.2]
     rms = math.sqrt(2.0 * best_cost / len(z_r))
     max_rms = max(MAX_RMS_M, MAX_RMS_REL * float(np.median(z_r)))
     if rms > max_rms or (other and other[0] < MIN_COST_RATIO * best_cost):
@@ -121,7 +121,18 @@ def solve_start(
         still=False,
         range_scale=1.0 + float(best[4]),
         range_sigma=rms,
+        range_scale_sigma=_scale_std(jac, rms),
     )
+
+
+def _scale_std(jac: np.ndarray, rms: float) -> float:
+    """Least-squares std of the start solve's scale (its last unknown) from the Jacobian at
+    the solution, scaled by the residuals' rms; inf where the solve is singular."""
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * rms * rms
+    except np.linalg.LinAlgError:
+        return math.inf
+    return float(math.sqrt(cov[-1, -1])) if cov[-1, -1] > 0.0 else math.inf
 
 
 
