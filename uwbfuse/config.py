@@ -325,11 +325,12 @@ class GraphConfig(_Section):
     )
     marginal_covariances: bool | Literal["auto"] = Field(
         "auto", description="pose covariances of isam2, isam2-smoothed and batch from the "
-        "graph's marginals (the trajectory's covariance, written by --cov-out and "
-        "--mcap-out); auto = when an output asks for them (`run` with --cov-out or "
-        "--mcap-out, `collisions`, the library's `pipeline.estimate`); false = skip them "
-        "(saves one marginal per update online and the marginals of the final graph in "
-        "batch) and report the poses' covariance unknown"
+        "graph's marginals, and ekf's consider covariance (the trajectory's covariance, "
+        "written by --cov-out and --mcap-out); auto = when an output asks for them (`run` "
+        "with --cov-out or --mcap-out, `collisions`, the library's `pipeline.estimate`); "
+        "false = skip them (saves one marginal per update online and the marginals of the "
+        "final graph in batch) and report the graph's poses' covariance unknown, ekf's "
+        "from its own P"
     )
 
 

@@ -319,7 +319,7 @@ def scalar_update(
 
 def sequential_ranges(
     noise: RangeNoise, p: F64, dx: F64, h: F64, y: F64, anchor: np.ndarray, rng: F64,
-    evidence: F64 | None = None,
+    evidence: F64 | None = None, gains: list[tuple[int, F64, float]] | None = None,
 ) -> tuple[F64, F64, np.ndarray, F64]:
     """Sequential robust scalar updates of M ranges rng (M,) m (rows h (M,n), innovations
     y (M,) at dx = 0) in their order. Each range is weighed (`RangeNoise.weigh_one`, the
@@ -337,6 +337,9 @@ def sequential_ranges(
         si = float(hi @ p @ hi)
         yc, var, ok, nis[i], pn = noise.weigh_one(a_l[i], yi, si, e_l[i])
         if ok:
+            if gains is not None:  # (row, gain, variance) of the accepted range
+                ph = p @ hi
+                gains.append((i, ph / (float(hi @ ph) + var), var))
             p, dx, _ = scalar_update(p, dx, hi, yc, var)
             used[i] = True
             noise.accept_one(a_l[i], yi, si, pn, r_l[i])

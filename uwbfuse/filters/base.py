@@ -530,6 +530,15 @@ class StreamingFilter(EstimatorBase):
         return var
 
 
+    def consider_variance(self) -> F64:
+        """Stationary variance (M,) m^2 of each anchor's range error that the filter treats
+        as white but that persists over an NLOS episode (`filters.consider`): the NLOS
+        assignment error (z - p) nlos_mean of the fitted mixture, share pi: variance
+        pi (1 - pi) nlos_mean^2, with the correlation time of the range biases."""
+        m = self.range_noise.model
+        pi = m.nlos_prior
+        return np.full(len(self.anchors), pi * (1.0 - pi) * m.nlos_mean**2)
+
     def start_bias_variance(self, state: InitialStateLike) -> F64:
         """`bias_variance` at the start `state`: the common range-scale error's variance is
         the start solve's own where that is smaller than `[graph] range_scale_sigma`^2 (the

@@ -92,6 +92,7 @@ from uwbfuse.filters.base import (
     StreamingFilter,
     build_filter,
 )
+from uwbfuse.filters.consider import ConsiderCovariance
 from uwbfuse.filters.models import (
     BA,
     BG,
@@ -164,6 +165,10 @@ class ErrorStateEkf(StreamingFilter):
     """
 
     RANGE_BIAS = True
+    #: report the pose covariance of a consider analysis (`filters.consider`: an anchor's
+    #: NLOS assignment error persists over its NLOS episode, which the per-range mixture
+    #: variance treats as white); the estimate is the filter's either way
+    CONSIDER = True
 
     def __init__(
         self,
@@ -198,6 +203,7 @@ class ErrorStateEkf(StreamingFilter):
         self.y: F64 = np.zeros(1)
         self.S: F64 = np.zeros((1, 1))
         self.K: F64 = np.zeros((N_ERR, 1))
+        self.consider: ConsiderCovariance | None = None
         self.z0 = 0.0
         #: log density (nats) of the wheel-speed and planar-constraint innovations so far:
         #: with `RangeNoise.log_likelihood` the filter's likelihood (`noise_bank`)
@@ -221,6 +227,11 @@ class ErrorStateEkf(StreamingFilter):
         self.ba = r_bi @ np.asarray(state.accel_bias, dtype=np.float64)
         self.P = augment(initial_covariance(state, self.config),
                          self.start_bias_variance(state))
+        # the consider analysis only where the pose covariances are wanted (it costs about
+        # a fifth of the filter's time)
+        wanted = self.config.graph.marginal_covariances is not False
+        self.consider = (ConsiderCovariance(self.P, self.consider_variance())
+                         if self.CONSIDER and self.n_bias and wanted else None)
         self.z0 = float(self.p[2])
 
     # -- predict / update over one window ----------------------------------------------
@@ -282,6 +293,8 @@ class ErrorStateEkf(StreamingFilter):
             dx0, self.P, self.S, self.K = joseph_update(
                 self.P, h_all, np.concatenate(rv), np.concatenate(ys)
             )
+            if self.consider is not None:
+                self.consider.update(self.K, h_all, np.concatenate(rv), None)
             self.y = np.concatenate(ys)
             self.row_log_likelihood += gaussian_log_density(self.y, self.S)
             start = 0
@@ -289,15 +302,28 @@ class ErrorStateEkf(StreamingFilter):
                 est.update(y_k, s_pred[start : start + len(y_k)])
                 start += len(y_k)
         if nr:  # then the ranges one by one, robustly weighted
+            gains: list = [] if self.consider is not None else None
             self.P, dx0, used, self.nis = sequential_ranges(
                 self.range_noise, self.P, np.zeros(self.n_x) if dx0 is None else dx0,
-                range_h, range_y, ra, rr, self.range_evidence(rt, ra),
+                range_h, range_y, ra, rr, self.range_evidence(rt, ra), gains,
             )
+            for i, k, var in gains or ():
+                self.consider.update_range(k, range_h[i], var, int(ra[i]))
         phi = pre.phi(-1)
         t_win = float(pre.t[-1])
         q = block_noise(phi, self.q_diag, t_win)
         if self.n_bias:
             f, qb = self.bias_decay(t_win)
+            if self.consider is not None:
+                t_full = np.zeros((self.n_x, self.n_x))
+                t_full[:N_ERR, :N_ERR] = phi
+                t_full[N_ERR:, N_ERR:] = np.diag(f)
+                q_full = np.zeros((self.n_x, self.n_x))
+                q_full[:N_ERR, :N_ERR] = q
+                q_full[N_ERR:, N_ERR:] = np.diag(qb)
+                fc = np.full(len(self.anchors), f[0])
+                self.consider.propagate(t_full, q_full, fc,
+                                        (1.0 - fc * fc) * self.consider_variance())
             self.P = propagate_with_biases(self.P, N_ERR, phi, q, f, qb)
             self.rbias = f * (self.rbias if dx0 is None else self.rbias + dx0[N_ERR:])
         else:
@@ -359,12 +385,16 @@ class ErrorStateEkf(StreamingFilter):
         h[n - 1, 8] = 1.0  # yaw on dtheta_z (R = exp(dtheta) R: map axes)
         yaw = math.atan2(self.R[1, 0], self.R[0, 0])
         y = np.append(z[:-1] - self.p[: n - 1], wrap(z[-1] - yaw))
+        p_prior = self.P
         res = gated_update(self.P, h, y, r, self.config.pose.gate_probability)
         if res.accepted:
             self.P = res.P
             self._inject(res.dx[:N_ERR])
             if self.n_bias:  # the poses' correlation with the ranges moves the biases too
                 self.rbias = self.rbias + res.dx[N_ERR:]
+            if self.consider is not None:
+                ph = p_prior @ h.T
+                self.consider.update(np.linalg.solve(h @ ph + r, ph.T).T, h, r, None)
         return res.accepted
 
     def _inject(self, dx: F64) -> None:
@@ -377,7 +407,9 @@ class ErrorStateEkf(StreamingFilter):
     def _inflate(self, scale: float) -> None:
         """Divergence recovery: widen position (horizontal only when planar), velocity and
         yaw by `scale` x the base steps; from the third recovery in a row (scale >= 16) also
-        roll/pitch and the accelerometer bias, up to their start/prior spreads."""
+        roll/pitch and the accelerometer bias, up to their start/prior spreads (the same
+        widening is added to the consider covariance)."""
+        before = self.P.copy()
         a = self.INFLATE_POS * scale
         self.P[P_, P_] += np.diag([a, a, 0.0 if self.planar else a])
         self.P[V_, V_] += np.eye(3) * self.INFLATE_VEL * scale
@@ -391,6 +423,8 @@ class ErrorStateEkf(StreamingFilter):
             ba2 = self.config.imu.accel_bias_sigma**2
             for i in range(12, 15):
                 self.P[i, i] = max(self.P[i, i], ba2)
+        if self.consider is not None:
+            self.consider.add(self.P - before)
 
     def _pose(self) -> tuple[F64, F64]:
         return self.p.copy(), quat_xyzw_from_matrix(self.R)
@@ -401,7 +435,8 @@ class ErrorStateEkf(StreamingFilter):
 
     def pose_covariance(self) -> F64:
         """(6,6) pose covariance: position and the global (map-axis) attitude error."""
-        return pose_covariance(self.P, (0, 1, 2, 6, 7, 8))
+        p = self.P if self.consider is None else self.consider.state
+        return pose_covariance(p, (0, 1, 2, 6, 7, 8))
 
     def report(self) -> dict[str, Any]:
         out = super().report()

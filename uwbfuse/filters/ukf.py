@@ -171,6 +171,7 @@ class ErrorStateUkf(ErrorStateEkf):
     """
 
     RANGE_SCALE = False  # range biases, no common scale state (module docstring)
+    CONSIDER = False  # its sigma-point updates have no linear gain to apply the analysis to
 
     def __init__(
         self,
