@@ -307,14 +307,14 @@ def scalar_update(
 
     p (n,n) covariance, dx (n,) correction so far, h (n,) Jacobian row, y the innovation at
     dx (m), r its variance. Joseph-form covariance (written for one row:
-    P - k ph^T - ph k^T + S k k^T). Returns the new P, dx and S = h P h^T + r.
+    P - k ph^T - ph k^T + S k k^T). Returns the new P, dx and the gain k (n,).
     """
     ph = p @ h
     s = float(h @ ph) + r
     k = ph / s
     kp = np.outer(k, ph)
     p_new = p - kp - kp.T + s * np.outer(k, k)
-    return p_new, dx + k * y, s
+    return p_new, dx + k * y, k
 
 
 def sequential_ranges(
@@ -337,10 +337,9 @@ def sequential_ranges(
         si = float(hi @ p @ hi)
         yc, var, ok, nis[i], pn = noise.weigh_one(a_l[i], yi, si, e_l[i])
         if ok:
+            p, dx, k = scalar_update(p, dx, hi, yc, var)
             if gains is not None:  # (row, gain, variance) of the accepted range
-                ph = p @ hi
-                gains.append((i, ph / (float(hi @ ph) + var), var))
-            p, dx, _ = scalar_update(p, dx, hi, yc, var)
+                gains.append((i, k, var))
             used[i] = True
             noise.accept_one(a_l[i], yi, si, pn, r_l[i])
     return 0.5 * (p + p.T), dx, used, nis

@@ -39,18 +39,6 @@ class ConsiderCovariance:
         self.p[:n, :n] += k @ s @ k.T
         self.p = 0.5 * (self.p + self.p.T)  # the expanded form drifts from symmetric
 
-    def update_range(self, k: F64, h: F64, r: float, anchor: int) -> None:
-        """`update` for one range (gain k (n,), row h (n,), variance r m^2, its anchor), in
-        vectors: the EKF makes one such update per accepted range."""
-        n = self.n
-        ph = self.p[:, :n] @ h + self.p[:, n + anchor]      # (N,)
-        s = float(ph[:n] @ h) + float(ph[n + anchor]) + r
-        kph = np.outer(k, ph)
-        self.p[:n] -= kph
-        self.p[:, :n] -= kph.T
-        self.p[:n, :n] += s * np.outer(k, k)
-        self.p = 0.5 * (self.p + self.p.T)  # the expanded form drifts from symmetric
-
     def propagate(self, t: F64, q: F64, f: F64, qc: F64) -> None:
         """The filter's transition t (n,n) and noise q (n,n); each excess times f (M,) plus
         noise of variances qc (M,)."""

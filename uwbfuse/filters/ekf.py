@@ -308,7 +308,8 @@ class ErrorStateEkf(StreamingFilter):
                 range_h, range_y, ra, rr, self.range_evidence(rt, ra), gains,
             )
             for i, k, var in gains or ():
-                self.consider.update_range(k, range_h[i], var, int(ra[i]))
+                self.consider.update(k[:, None], range_h[i:i + 1], np.array([var]),
+                                     ra[i:i + 1])
         phi = pre.phi(-1)
         t_win = float(pre.t[-1])
         q = block_noise(phi, self.q_diag, t_win)
@@ -409,7 +410,7 @@ class ErrorStateEkf(StreamingFilter):
         yaw by `scale` x the base steps; from the third recovery in a row (scale >= 16) also
         roll/pitch and the accelerometer bias, up to their start/prior spreads (the same
         widening is added to the consider covariance)."""
-        before = self.P.copy()
+        before = self.P.copy() if self.consider is not None else None
         a = self.INFLATE_POS * scale
         self.P[P_, P_] += np.diag([a, a, 0.0 if self.planar else a])
         self.P[V_, V_] += np.eye(3) * self.INFLATE_VEL * scale
@@ -423,7 +424,7 @@ class ErrorStateEkf(StreamingFilter):
             ba2 = self.config.imu.accel_bias_sigma**2
             for i in range(12, 15):
                 self.P[i, i] = max(self.P[i, i], ba2)
-        if self.consider is not None:
+        if before is not None:
             self.consider.add(self.P - before)
 
     def _pose(self) -> tuple[F64, F64]:

@@ -73,4 +73,3 @@ def gaussian_covariances(cov: np.ndarray) -> np.ndarray:
     floored on the diagonal (1e-12, in the variable's squared units)."""
     c = 0.5 * (cov + np.swapaxes(cov, -1, -2))
     return c + np.eye(cov.shape[-1]) * 1e-12
-
