@@ -271,6 +271,10 @@ IMU_NOISE_TEST_NATS = 0.5 * 3.841
 ONLINE_FIRST_S = 10.0
 # s: the window an online fit looks at (bounds its work; noise levels do not change with time)
 ONLINE_WINDOW_S = 30.0
+# ranges batch's noise and time-offset fits look at (`graph.evidence_window`): the ranges
+# tell the motion noise, and n of them fix a noise level to ~1/sqrt(2n) = 1 %, far finer
+# than the fits' factor-2 grid
+EVIDENCE_RANGES = 5000
 
 # ---------------------------------------------------------------------------------------
 # Batch EM (`graph.offline`)

@@ -701,10 +701,12 @@ class GraphBuilder:
         return inc
 
     def restart_priors(self, k: int, pose: gtsam.Pose3, vel: np.ndarray | None,
-                       bias: gtsam.imuBias.ConstantBias | None) -> gtsam.NonlinearFactorGraph:
+                       bias: gtsam.imuBias.ConstantBias | None, anchors: bool = True
+                       ) -> gtsam.NonlinearFactorGraph:
         """Loose priors on keyframe k's state at `pose` (and `vel`, `bias` with an IMU)
-        and the anchors at their positions: where a smoother starts afresh (re-anchoring)
-        or a window of the graph begins (the online IMU noise fit)."""
+        and (`anchors`) the anchors at their positions: where a smoother starts afresh
+        (re-anchoring) or a window of the graph begins (the online IMU noise fit; batch's
+        evidence windows, whose graph holds the anchor priors already)."""
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.PriorFactorPose3(
             X(k), pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (0.5, 0.5, 0.5)))))
@@ -712,7 +714,7 @@ class GraphBuilder:
             graph.add(gtsam.PriorFactorVector(V(k), vel, diagonal([0.5] * 3)))
             graph.add(gtsam.PriorFactorConstantBias(B(k), bias,
                                                     diagonal(self.bias_prior_sigmas())))
-        for a in range(len(self.anchors)):
+        for a in range(len(self.anchors) if anchors else 0):
             graph.add(gtsam.PriorFactorPoint3(L(a), self.anchors.positions[a],
                                               diagonal([ANCHOR_SIGMA] * 3)))
         return graph

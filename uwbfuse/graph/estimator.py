@@ -67,6 +67,7 @@ from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, noise_fit, offline
 from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
+from uwbfuse.graph.evidence_window import EvidenceWindows, window_mask
 from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.online import OnlineSmoother
@@ -139,6 +140,8 @@ class GraphEstimator(EstimatorBase):
         self._wheel_noise: tuple[float, float] | None = None
         # batch: the IMU noise inflation fitted (times the [imu] noise)
         self._imu_inflation: float | None = None
+        # batch: the keyframes its noise and time-offset fits look at (`_evidence_windows`)
+        self._windows: EvidenceWindows | None = None
         # online IMU noise fits (`_fit_imu_online`): the last one's graph age, s, and each
         self._imu_fit_age: float | None = None
         self._imu_fits: list[dict[str, Any]] = []
@@ -744,6 +747,7 @@ class GraphEstimator(EstimatorBase):
         # the online pass built its IMU factors at the inflations of its time (`auto`):
         # one, its last, for the wheel fits, then the whole log's own
         b.complete_imu_records(b.imu_inflation)
+        self._windows = None
         self._complete_wheel_records()
         self._fit_imu_noise()
         graph, initial, rec = self.batch_inputs()
@@ -751,7 +755,7 @@ class GraphEstimator(EstimatorBase):
                                     self.anchors.positions, b.k + 1, b.mixture, b.t0, b.scale,
                                     has_wheel=b.has_wheel, with_scale=b.with_scale,
                                     wheel=b.wheel_records,
-                                    planar=b.planar)
+                                    planar=b.planar, windows=self._evidence_windows())
 
     def _complete_wheel_records(self) -> None:
         """The offline solve's wheel factors from the complete track
@@ -769,6 +773,7 @@ class GraphEstimator(EstimatorBase):
             return
         period = float(np.median(np.diff(self.wheel.t)))
         graph, initial, _ = self.batch_inputs()  # the offset changes only factors and tags
+        win = self._evidence_windows()
         errs: dict[float, float] = {}
         solved: dict[float, gtsam.Values] = {}
 
@@ -777,8 +782,8 @@ class GraphEstimator(EstimatorBase):
                 near = min(solved, key=lambda x: abs(x - f), default=None)
                 b.complete_wheel_records(round(f * period))
                 errs[f], solved[f] = offline.motion_fit_error(
-                    self.cfg, graph, initial if near is None else solved[near],
-                    b.records.arrays(), b.scale if b.with_scale else None,
+                    self.cfg, win.graph(graph, initial), initial if near is None else solved[near],
+                    win.ranges(b.records.arrays()), b.scale if b.with_scale else None,
                     b.robust_sigma(), b.with_bias)
             return errs[f]
 
@@ -807,10 +812,12 @@ class GraphEstimator(EstimatorBase):
         b.complete_wheel_records(round(f * period))
         if self.cfg.graph.estimate_wheel_noise:
             graph, _, rec = self.batch_inputs()  # from the motion fit at the best offset
-            fac = noise_fit.fit_wheel_noise(self.cfg, graph, solved[best], rec,
-                                          b.scale if b.with_scale else None,
-                                          b.robust_sigma(), b.with_bias, b.wheel_records,
-                                          b.pose_index)
+            fac = noise_fit.fit_wheel_noise(self.cfg, win.graph(graph, initial),
+                                            solved[best], win.ranges(rec),
+                                            b.scale if b.with_scale else None,
+                                            b.robust_sigma(), b.with_bias,
+                                            win.wheel(b.wheel_records),
+                                            win.pose_index(b.pose_index))
             self._wheel_noise = (float(fac[0]), float(fac[1]))
             b.complete_wheel_records(round(f * period), self._wheel_noise)
 
@@ -823,10 +830,36 @@ class GraphEstimator(EstimatorBase):
         if self.cfg.graph.imu_noise_inflation != "auto" or not b.imu_records.k:
             return
         graph, initial, rec = self.batch_inputs()
+        win = self._evidence_windows()
         self._imu_inflation = noise_fit.fit_imu_noise(
-            self.cfg, graph, initial, rec, b.scale if b.with_scale else None,
-            b.robust_sigma(), b.with_bias, b.imu_records, b.pose_index, b.imu_inflation)
+            self.cfg, win.graph(graph, initial), initial,
+            win.ranges(rec), b.scale if b.with_scale else None, b.robust_sigma(),
+            b.with_bias, win.imu(b.imu_records), win.pose_index(b.pose_index),
+            b.imu_inflation)
         b.complete_imu_records(self._imu_inflation)
+
+    def _evidence_windows(self) -> EvidenceWindows:
+        """batch's noise and time-offset fits: the keyframes they look at
+        (`graph.evidence_window`), computed once per solve (the recorded graph's factor
+        structure does not change with the noise or the offset)."""
+        b = self.builder
+        assert b is not None and b.full_graph is not None
+        if self._windows is None:
+            stamps = np.array([b.stamp(k) for k in range(b.k + 1)])
+            n_ranges = len(b.records.arrays()["z"])
+            self._windows = EvidenceWindows.of(b.full_graph, window_mask(stamps, n_ranges),
+                                               self._window_priors)
+        return self._windows
+
+    def _window_priors(self, k: int, values: gtsam.Values) -> gtsam.NonlinearFactorGraph:
+        """Loose priors on keyframe k's state in `values` where an evidence window
+        begins."""
+        b = self.builder
+        assert b is not None
+        return b.restart_priors(k, values.atPose3(X(k)),
+                                values.atVector(V(k)) if b.has_imu else None,
+                                values.atConstantBias(B(k)) if b.has_imu else None,
+                                anchors=False)
 
     def batch_inputs(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values,
                                     dict[str, np.ndarray]]:
@@ -1002,6 +1035,8 @@ class GraphEstimator(EstimatorBase):
                                                   "omega": self._wheel_noise[1]}
             if self._imu_inflation is not None:
                 out[key]["imu_noise_inflation"] = self._imu_inflation
+            if self._windows is not None:  # share of keyframes the fits looked at
+                out[key]["evidence_share"] = round(float(self._windows.keep.mean()), 4)
             if self._batch.wheel_scale is not None:
                 out[key]["wheel_scale"] = {"v": float(self._batch.wheel_scale[0]),
                                                "omega": float(self._batch.wheel_scale[1])}

@@ -18,6 +18,7 @@ built once."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import logging
 import math
@@ -52,6 +53,7 @@ from uwbfuse.constants import (
     WHEEL_SCALE_SIGMA,
 )
 from uwbfuse.graph.builder import WheelRecords, held_anchor_bias_sigma
+from uwbfuse.graph.evidence_window import EvidenceWindows
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
@@ -317,11 +319,13 @@ def solve(
     with_scale: bool = False,
     wheel: WheelRecords | None = None,
     planar: bool = True,
+    windows: EvidenceWindows | None = None,
 ) -> BatchResult:
     """EM + LM over the full graph (see the module docstring).
 
     `graph.range_model = "auto"`: held-out cross-validation (`_cross_validated`) chooses
-    among the candidates.
+    among the candidates, over the keyframes of `windows` (`graph.evidence_window`; None:
+    the whole log); the chosen one is then fitted to the whole log.
 
     EM from the online trajectory classifies each range against a trajectory that, where
     most anchors are blocked at once, has already been pulled towards the NLOS ranges: they
@@ -358,7 +362,8 @@ def solve(
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))
         return out
-    return _cross_validated(problem, list(candidates.values()), rec, initial, model, scale0)
+    return _cross_validated(problem, list(candidates.values()), rec, initial, model, scale0,
+                            windows)
 
 
 @dataclass(frozen=True)
@@ -397,6 +402,15 @@ class _Problem:
             return None
         return _WheelScale(self.wheel)
 
+    def windowed(self, windows: EvidenceWindows | None, initial: gtsam.Values) -> _Problem:
+        """The same problem over the keyframes of `windows` only (their graph starts
+        from `initial`); itself without windows."""
+        if windows is None or windows.whole:
+            return self
+        return dataclasses.replace(
+            self, base_graph=windows.graph(self.base_graph, initial),
+            wheel=None if self.wheel is None else windows.wheel(self.wheel))
+
     def fit(self, m: RangeModel, rec: dict[str, np.ndarray], initial: gtsam.Values,
             mix: NlosModel, scale0: np.ndarray | None) -> BatchResult:
         """Range model `m` fitted to the ranges `rec` from `initial`."""
@@ -411,19 +425,23 @@ class _Problem:
 def _cross_validated(
     problem: _Problem, candidates: list[RangeModel], rec: dict[str, np.ndarray],
     initial: gtsam.Values, model: NlosModel, scale0: np.ndarray | None,
+    windows: EvidenceWindows | None = None,
 ) -> BatchResult:
-    """`graph.range_model = "auto"`: each candidate fitted without the held-out stretches
-    of a phase (`heldout_mask`), phase after phase until MIN_SCORED_RANGES are held out;
-    the best mean held-out log score wins and is fitted to every range."""
+    """`graph.range_model = "auto"`: each candidate fitted, over the keyframes of
+    `windows` (None: all), without the held-out stretches of a phase (`heldout_mask`),
+    phase after phase until MIN_SCORED_RANGES are held out; the best mean held-out log
+    score wins and is fitted to every range of the log."""
     cfg = problem.cfg
+    trial = problem.windowed(windows, initial)
+    rec_cv = rec if windows is None else windows.ranges(rec)
     scored: dict[str, list[np.ndarray]] = {m.name: [] for m in candidates}
     first: dict[str, BatchResult] | None = None
     for phase in HELDOUT_PHASES:
-        held = heldout_mask(rec["t_ns"], problem.t0_ns, phase)
+        held = heldout_mask(rec_cv["t_ns"], problem.t0_ns, phase)
         if not np.any(held):
             continue
-        train, test = _subset(rec, ~held), _subset(rec, held)
-        fits = {m.name: problem.fit(m, train, initial, model, scale0) for m in candidates}
+        train, test = _subset(rec_cv, ~held), _subset(rec_cv, held)
+        fits = {m.name: trial.fit(m, train, initial, model, scale0) for m in candidates}
         for name, f in fits.items():
             scored[name].append(heldout_log_score(f, train, test, problem.anchors,
                                                   problem.n_kf, cfg, problem.t0_ns))
