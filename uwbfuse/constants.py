@@ -58,6 +58,13 @@ STATIC_MAX_TURN_RAD = 0.3
 # bound on a standstill fix's common range scale: a guard (clocks err by ppm, radios met read a
 # few % long); beyond 15 % a fit on few anchors trades position for scale
 STATIC_MAX_SCALE = 0.15
+# m: soft-L1 scale of the sparse start's solves, about twice a LOS range's error (UWB ~0.1 m)
+SOFT_L1_M = 0.2
+# m: largest common range offset of a sparse start: an antenna delay is decimetres; a minimum
+# beyond is no start
+START_MAX_OFFSET_M = 1.0
+# largest common range scale error of a sparse start, as STATIC_MAX_SCALE
+START_MAX_SCALE = STATIC_MAX_SCALE
 # m: anchors spread over this much height observe the tag's height
 HEIGHT_SPREAD_M = 1.0
 # s of ranges before the wheel-track start: the initialiser needs fixes and 0.5 m of travel

@@ -6,11 +6,13 @@ when a radio ranges to one anchor at a time at a few Hz (the Labyrinth and Plaza
 there are no fixes and it never answers. Then this module solves the start directly from
 the raw ranges: the wheel dead-reckoning track d(t) (base frame at its first sample) is
 placed in the map by an unknown planar pose (x0, y0, yaw0), a common range offset c and a
-common range scale error k (|k| <= 15 %), and robust least squares (scipy, soft-L1) fits
-(1 + k) |p0 + R(yaw0) d(t) + R(t) tag - anchor| + c to every range so far, from several yaw
-seeds. The answer is accepted once the vehicle has
-travelled `MIN_TRAVEL_M`, the best solution's residuals are consistent and no other local
-minimum comes close. Sensors only: no ground truth, no given pose.
+common range scale error k, and the start's robust LM (`initialisation.robust_lm`, the one
+optimiser of every start solve, soft-L1) fits (1 + k) |p0 + R(yaw0) d(t) + R(t) tag -
+anchor| + c to every range so far, from several yaw seeds; a minimum with |c| or |k| past
+the radios' physical range (START_MAX_OFFSET_M, START_MAX_SCALE) is no start. The answer is
+accepted once the vehicle has travelled `MIN_TRAVEL_M`, the best solution's residuals are
+consistent and no other local minimum comes close. Sensors only: no ground truth, no given
+pose.
 """
 
 from __future__ import annotations
@@ -18,7 +20,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from uwbfuse.constants import (
     HEIGHT_SPREAD_M,
@@ -27,6 +28,9 @@ from uwbfuse.constants import (
     MIN_COST_RATIO,
     MIN_TRAVEL_M,
     N_SEEDS,
+    SOFT_L1_M,
+    START_MAX_OFFSET_M,
+    START_MAX_SCALE,
     START_MIN_RANGES,
     STATIC_MAX_RANGES,
     STATIC_MAX_SCALE,
@@ -35,7 +39,7 @@ from uwbfuse.constants import (
     STATIC_MIN_ANCHORS,
     STATIC_MIN_RANGES,
 )
-from uwbfuse.positioning.initialisation import InitialState
+from uwbfuse.positioning.initialisation import InitialState, robust_lm
 from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
 
@@ -76,13 +80,22 @@ def solve_start(
     anc = anchors.positions[a_r]
     dz = base_z + tag[2] - anc[:, 2]
 
-    def resid(p: np.ndarray) -> np.ndarray:
+    n_r = len(z_r)
+
+    def fun_jac(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x0, y0, yaw, off, scale = p
         cy, sy = math.cos(yaw), math.sin(yaw)
         px = x0 + cy * tag_xy[:, 0] - sy * tag_xy[:, 1]
         py = y0 + sy * tag_xy[:, 0] + cy * tag_xy[:, 1]
-        rng = np.sqrt((px - anc[:, 0]) ** 2 + (py - anc[:, 1]) ** 2 + dz**2)
-        return (1.0 + scale) * rng + off - z_r
+        ex, ey = px - anc[:, 0], py - anc[:, 1]
+        rng = np.sqrt(ex**2 + ey**2 + dz**2)
+        g = (1.0 + scale) / np.maximum(rng, 1e-9)
+        jac = np.empty((n_r, 5))
+        jac[:, 0], jac[:, 1] = g * ex, g * ey
+        jac[:, 2] = g * (ex * (-sy * tag_xy[:, 0] - cy * tag_xy[:, 1])
+                         + ey * (cy * tag_xy[:, 0] - sy * tag_xy[:, 1]))
+        jac[:, 3], jac[:, 4] = 1.0, rng
+        return (1.0 + scale) * rng + off - z_r, jac
 
     centre = anchors.positions[:, :2].mean(axis=0)
     sols = []
@@ -91,12 +104,14 @@ def solve_start(
         # seed the position so that the track's middle sits at the anchors' centre
         mid = tag_xy[len(tag_xy) // 2]
         p0 = centre - _rot_z(yaw0)[:2, :2] @ mid
-        r = least_squares(resid, [p0[0], p0[1], yaw0, 0.0, 0.0], loss="soft_l1", f_scale=0.2,
-                          max_nfev=300, bounds=([-np.inf] * 3 + [-1.0, -0.15],
-                                                [np.inf] * 3 + [1.0, 0.15]))
-        sols.append((float(r.cost), r.x, r.jac))
+        r = robust_lm(fun_jac, np.array([p0[0], p0[1], yaw0, 0.0, 0.0]), n_r, SOFT_L1_M)
+        # a minimum outside the radios' physical offset and scale is no start
+        if r is not None and abs(r.x[3]) <= START_MAX_OFFSET_M and abs(r.x[4]) <= START_MAX_SCALE:
+            sols.append((r.cost, r.x, r.jac))
+    if not sols:
+        return None
     sols.sort(key=lambda c_x: c_x[0])
-    best_cost, best, jac = sols[0]
+    best_cost, best, _ = sols[0]
     yaw_b = best[2]
     other = [c for c, x, _ in sols[1:] if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > 0.2]
     rms = math.sqrt(2.0 * best_cost / len(z_r))
@@ -121,13 +136,16 @@ def solve_start(
         still=False,
         range_scale=1.0 + float(best[4]),
         range_sigma=rms,
-        range_scale_sigma=_scale_std(jac, rms),
+        range_scale_sigma=_scale_std(*fun_jac(best), rms),
     )
 
 
-def _scale_std(jac: np.ndarray, rms: float) -> float:
-    """Least-squares std of the start solve's scale (its last unknown) from the Jacobian at
-    the solution, scaled by the residuals' rms; inf where the solve is singular."""
+def _scale_std(f: np.ndarray, jac: np.ndarray, rms: float) -> float:
+    """Least-squares std of the start solve's scale (its last unknown) from the residuals
+    `f` and their Jacobian at the solution, scaled by the residuals' rms; inf where the
+    solve is singular. The rows carry the soft-L1 cost's Gauss-Newton Hessian weights
+    rho' + 2 rho'' z = (1 + z)^-3/2, z = (f / SOFT_L1_M)^2 (as scipy's `least_squares`)."""
+    jac = jac * ((1.0 + (f / SOFT_L1_M) ** 2) ** -0.75)[:, None]
     try:
         cov = np.linalg.inv(jac.T @ jac) * rms * rms
     except np.linalg.LinAlgError:
@@ -166,18 +184,23 @@ def solve_static(
     anc = anchors.positions[a_r]
     dz2 = (tag_z - anc[:, 2]) ** 2
 
-    def resid(p: np.ndarray) -> np.ndarray:
-        d = np.sqrt((p[0] - anc[:, 0]) ** 2 + (p[1] - anc[:, 1]) ** 2 + dz2)
-        return (1.0 + p[2]) * d - z_r
+    n_r = len(z_r)
+
+    def fun_jac(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ex, ey = p[0] - anc[:, 0], p[1] - anc[:, 1]
+        d = np.sqrt(ex**2 + ey**2 + dz2)
+        g = (1.0 + p[2]) / np.maximum(d, 1e-9)
+        return (1.0 + p[2]) * d - z_r, np.column_stack([g * ex, g * ey, d])
 
     used = anchors.positions[np.unique(a_r), :2]
     seeds = [used.mean(axis=0)] + [p + 1.0 for p in used]  # centroid, beside each anchor
     sols = []
     for s in seeds:
-        r = least_squares(resid, [s[0], s[1], 0.0], loss="soft_l1", f_scale=0.2, max_nfev=200,
-                          bounds=([-np.inf, -np.inf, -STATIC_MAX_SCALE],
-                                  [np.inf, np.inf, STATIC_MAX_SCALE]))
-        sols.append((float(r.cost), r.x))
+        r = robust_lm(fun_jac, np.array([s[0], s[1], 0.0]), n_r, SOFT_L1_M)
+        if r is not None and abs(r.x[2]) <= STATIC_MAX_SCALE:  # as in `solve_start`
+            sols.append((r.cost, r.x))
+    if not sols:
+        return None
     sols.sort(key=lambda c_x: c_x[0])
     best_cost, best = sols[0]
     other = [c for c, x in sols[1:] if np.hypot(*(x[:2] - best[:2])) > 1.0]
