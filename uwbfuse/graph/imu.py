@@ -26,17 +26,20 @@ def pose_from_xyzq(xyzq: tuple[float, ...] | np.ndarray) -> gtsam.Pose3:
 
 
 def preintegration_params(
-    cfg: ImuConfig, ext: Extrinsics, inflation: float = 1.0
+    cfg: ImuConfig, ext: Extrinsics, inflation: float = 1.0,
+    gyro_inflation: float | None = None,
 ) -> gtsam.PreintegrationCombinedParams:
     """PreintegrationCombinedParams from config (gravity along -z of the map frame).
 
-    `inflation` multiplies the noise densities and bias random walks (standard deviations).
+    `inflation` multiplies the noise densities and bias random walks (standard deviations);
+    `gyro_inflation`, when given, the gyroscope's white noise density instead.
     """
     p = gtsam.PreintegrationCombinedParams.MakeSharedU(cfg.gravity)
     i3 = np.eye(3)
     f2 = inflation**2
+    g2 = f2 if gyro_inflation is None else gyro_inflation**2
     p.setAccelerometerCovariance(i3 * cfg.accel_noise_density**2 * f2)
-    p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2 * f2)
+    p.setGyroscopeCovariance(i3 * cfg.gyro_noise_density**2 * g2)
     # 1e-6 (m/s)^2 s: below ~1e-7 the 0.1 s factors become too ill-conditioned for Cholesky
     p.setIntegrationCovariance(i3 * 1e-6)
     p.setBiasAccCovariance(i3 * cfg.accel_bias_random_walk**2 * f2)
