@@ -533,6 +533,52 @@ def test_isam2_fits_the_imu_noise_from_the_data_so_far(factory):
     assert online == {"inflation": 3.0, "fits": []}
 
 
+def _imu_noise_by_age(log: SensorLog, monkeypatch) -> tuple[list[tuple[float, float, float]],
+                                                                dict]:
+    """isam2 on `log`: per keyframe interval, its first keyframe's graph age (s) and the
+    inflations (gyroscope, accelerometer white noise, std) of its IMU factor; the report's
+    online IMU noise fits."""
+    from uwbfuse.graph.builder import GraphBuilder
+
+    imu = Config().imu
+    seen: list[tuple[float, float, float]] = []
+    orig = GraphBuilder.next
+
+    def next_(self):
+        inc = orig(self)
+        p = self.pim_params
+        seen.append((self.stamp(self.k - 1),
+                     np.sqrt(p.getGyroscopeCovariance()[0, 0]) / imu.gyro_noise_density,
+                     np.sqrt(p.getAccelerometerCovariance()[0, 0]) / imu.accel_noise_density))
+        return inc
+
+    monkeypatch.setattr(GraphBuilder, "next", next_)
+    return seen, estimate(log, Method.ISAM2, Config()).report["online_imu_noise"]
+
+
+def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factory,
+                                                                           monkeypatch):
+    """Test that with wheels the online graph's IMU factors start loose (256x), keep the
+    gyroscope's white noise at its configured density from one lag (5 s) after the start
+    until the first noise fit, and take the fitted inflation for both after it; without
+    wheels the gyroscope stays with the rest (docs/results.md, "A wheel slip before the
+    first IMU noise fit")."""
+    lag = Config().graph.lag
+    seen, online = _imu_noise_by_age(factory.log, monkeypatch)
+    first = online["fits"][0]["graph_age_s"]
+    f = online["fits"][0]["inflation"]
+    start = [(g, a) for t, g, a in seen if t < lag]
+    held = [(g, a) for t, g, a in seen if lag <= t < first]
+    after = [(g, a) for t, g, a in seen if first <= t < online["fits"][1]["graph_age_s"]]
+    assert start and held and after
+    assert np.allclose(start, 256.0)
+    assert np.allclose([g for g, _ in held], 1.0) and np.allclose([a for _, a in held], 256.0)
+    assert np.allclose(after, f)
+    monkeypatch.undo()
+    seen, _ = _imu_noise_by_age(_drop(factory.log, "wheel"), monkeypatch)
+    assert all(g == pytest.approx(a) for _, g, a in seen)
+
+
 @pytest.mark.parametrize(("curve", "expected_log2"), [
     # best 6; 7 falls 37.6 nats below it (with the hyperprior u^2 / 8)
     (lambda u: -20.0 * (u - 5.6) ** 2, 6.0 + 1.9205 / 37.625),
