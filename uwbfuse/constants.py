@@ -30,15 +30,6 @@ MIN_TRAVEL_M = 2.0
 START_MIN_RANGES = 30
 # yaw seeds of the start solve, 45 deg apart (its cost is multimodal in yaw)
 N_SEEDS = 8
-# m: robust rms of an accepted start: a right solution's holds LOS noise (0.03-0.1 m) and NLOS
-# excess (~0.3 m); a wrong yaw misplaces the track by about its extent (>= MIN_TRAVEL_M)
-MAX_RMS_M = 0.5
-# ... or 3 % of the median range (above 17 m): range errors grow with distance (NLOS paths,
-# weaker signal), and so does the wheel track's 1-3 % scale error over site-size paths
-MAX_RMS_REL = 0.03
-# cost ratio the second-best yaw minimum must exceed: chi-square-like costs of 30 ranges (25-30
-# dof) differ by 2x at the 95-97 % point of F by chance; 99.97 % at 100 ranges
-MIN_COST_RATIO = 2.0
 # ranges a standstill fix needs: 3 unknowns (x, y, common scale) and 5 of redundancy for the
 # robust fit, two per anchor at STATIC_MIN_ANCHORS
 STATIC_MIN_RANGES = 8
@@ -58,7 +49,7 @@ STATIC_MAX_TURN_RAD = 0.3
 # bound on a standstill fix's common range scale: a guard (clocks err by ppm, radios met read a
 # few % long); beyond 15 % a fit on few anchors trades position for scale
 STATIC_MAX_SCALE = 0.15
-# m: soft-L1 scale of the sparse start's solves, about twice a LOS range's error (UWB ~0.1 m)
+# m: soft-L1 scale of the sparse start's solves: SOFT_L1_SIGMAS range sigmas of 0.1 m (UWB LOS)
 SOFT_L1_M = 0.2
 # m: largest common range offset of a sparse start: an antenna delay is decimetres; a minimum
 # beyond is no start

@@ -69,7 +69,7 @@ _RETRY_S = 0.5  # data time between two heading solves, s
 _N_SEEDS = 8
 _GYRO_BIAS_MAX = 0.1  # largest gyro turn-on bias a standstill may show, rad/s
 _MIN_STILL_IMU_SAMPLES = 20  # IMU samples in the standstill to take biases from it
-_SOFT_L1_SCALE = 2.0  # soft-L1 scale of the heading solve, in range sigmas
+SOFT_L1_SIGMAS = 2.0  # soft-L1 scale of the heading solve, in range sigmas
 _MAX_RANGES = 480  # ranges used by one heading solve (evenly thinned beyond)
 _IMU_WINDOW_S = 8.0  # longest window of an IMU-only (strapdown) track, s
 _TILT_SIGMA = 0.05  # prior std of the level error without a still start, rad
@@ -80,8 +80,8 @@ _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
-_RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
-_RIVAL_SEPARATION = math.radians(20.0)  # rad: yaw minima closer than this are one basin
+RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
+RIVAL_SEPARATION = math.radians(20.0)  # rad: yaw minima closer than this are one basin
 
 
 def range_scale_applies(k: float, anchors: AnchorMap, position: np.ndarray) -> bool:
@@ -1006,11 +1006,11 @@ class StartVerdict:
 
 
 def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
-    """The start solve: `robust_lm` (soft-L1 at _SOFT_L1_SCALE range sigmas) from each
+    """The start solve: `robust_lm` (soft-L1 at SOFT_L1_SIGMAS range sigmas) from each
     seed x0 of `problem`'s unknowns; the local minima found."""
     sols = []
     for x0 in seeds:
-        sol = robust_lm(problem.fun_jac, x0, len(problem.rr), _SOFT_L1_SCALE)
+        sol = robust_lm(problem.fun_jac, x0, len(problem.rr), SOFT_L1_SIGMAS)
         if sol is not None:
             sols.append(sol)
     return sols
@@ -1026,7 +1026,7 @@ def accept_start(
     over the window from `w_start` ns, accepted when its residuals are consistent (robust
     spread within 3 range sigmas or _MAX_MAD_REL of the median range, 60 % inliers) and its
     yaw is determined (no rival
-    minimum _RIVAL_SEPARATION away within _RIVAL_MARGIN of chi-square; with `narrow_basin`,
+    minimum RIVAL_SEPARATION away within RIVAL_MARGIN of chi-square; with `narrow_basin`,
     for a consumer that cannot correct its heading later, also the best minimum's own
     basin: a yaw std of at most a third of the separation) or a full window of max_win s
     has been waited. The least-squares stds are reported with the state as they are."""
@@ -1038,21 +1038,16 @@ def accept_start(
     sols.sort(key=lambda s: s.cost)
     best = sols[0]
     yaw_best = _wrap(best.x[3])
-    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > _RIVAL_SEPARATION]
+    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > RIVAL_SEPARATION]
     dof = max(n_r - n_unk, 1)
-    res = best.fun[:n_r]
-    mad = float(np.median(np.abs(res))) * 1.4826
+    consistent, mad, inliers = start_consistent(best.fun[:n_r], float(np.median(rr)), sig)
     scale2 = max(1.0, 2.0 * best.cost / dof)
     try:
         cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
     except np.linalg.LinAlgError:
         return StartVerdict(None, False, False, "heading solve singular")
     yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
-    # On large sites the range errors grow with the range (multipath, scale): the
-    # allowed spread is the larger of 3 sigma and _MAX_MAD_REL of the median range.
-    lim = max(3.0, _MAX_MAD_REL * float(np.median(rr)) / sig)
-    inliers = float(np.mean(np.abs(res) < lim))
-    margin = 2.0 * (rival[0].cost - best.cost) if rival else np.inf
+    margin = rival_margin(best.cost, [s.cost for s in rival])
     x = best.x
     p0, yaw0 = x[:3], float(x[3])
     v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
@@ -1088,20 +1083,38 @@ def accept_start(
         range_sigma=max(mad, 1.0) * sig,
         range_scale_sigma=float(np.sqrt(max(cov[i_k, i_k], 0.0))) if n_k else math.inf,
     )
-    consistent = mad <= lim and inliers >= 0.6
     # After a full window without a determined heading, start anyway with the best
     # solution and its (large) yaw std: the estimator must start from what it has.
     waited = t_ns - w_start >= max_win * NS_PER_S * 0.99 or (
         motion_start is not None and t_ns - motion_start >= max_win * NS_PER_S)
-    # narrow basin: a heading _RIVAL_SEPARATION off costs _RIVAL_MARGIN in the best
+    # narrow basin: a heading RIVAL_SEPARATION off costs RIVAL_MARGIN in the best
     # minimum's own basin too (quadratic: (separation / std)^2)
-    determined = margin >= _RIVAL_MARGIN and (
-        not narrow_basin or yaw_sigma <= _RIVAL_SEPARATION / math.sqrt(_RIVAL_MARGIN))
+    determined = margin >= RIVAL_MARGIN and (
+        not narrow_basin or yaw_sigma <= RIVAL_SEPARATION / math.sqrt(RIVAL_MARGIN))
     if not consistent or not (determined or waited):
         reason = (f"heading not yet determined (yaw std {math.degrees(yaw_sigma):.1f} deg, "
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
         return StartVerdict(state, consistent, False, reason)
     return StartVerdict(state, consistent, True, "initialised")
+
+
+def start_consistent(res: F64, median_range: float, sig: float) -> tuple[bool, float, float]:
+    """The consistency rule of every start solve: residuals `res` (in range sigmas `sig`, m)
+    whose robust spread (1.4826 MAD) is within the larger of 3 sigmas and _MAX_MAD_REL of
+    the median range (`median_range`, m; on large sites range errors grow with the range:
+    multipath, scale), with at least 60 % of them inside it. (consistent, MAD, inlier
+    share)."""
+    mad = float(np.median(np.abs(res))) * 1.4826
+    lim = max(3.0, _MAX_MAD_REL * median_range / sig)
+    inliers = float(np.mean(np.abs(res) < lim))
+    return mad <= lim and inliers >= 0.6, mad, inliers
+
+
+def rival_margin(best_cost: float, rival_costs: list[float]) -> float:
+    """Chi-square (twice the cost difference, costs in range sigmas squared) by which the
+    best start solution beats the best rival (a minimum of another basin); inf without
+    one. The rule of every start solve: a start needs RIVAL_MARGIN."""
+    return 2.0 * (min(rival_costs) - best_cost) if rival_costs else math.inf
 
 
 def _heading_seeds(prior: tuple[F64, float] | None, tf: F64, pf: F64, lev0: F64, solve_v: bool,

@@ -23,9 +23,6 @@ import numpy as np
 
 from uwbfuse.constants import (
     HEIGHT_SPREAD_M,
-    MAX_RMS_M,
-    MAX_RMS_REL,
-    MIN_COST_RATIO,
     MIN_TRAVEL_M,
     N_SEEDS,
     SOFT_L1_M,
@@ -39,7 +36,15 @@ from uwbfuse.constants import (
     STATIC_MIN_ANCHORS,
     STATIC_MIN_RANGES,
 )
-from uwbfuse.positioning.initialisation import InitialState, robust_lm
+from uwbfuse.positioning.initialisation import (
+    RIVAL_MARGIN,
+    RIVAL_SEPARATION,
+    SOFT_L1_SIGMAS,
+    InitialState,
+    rival_margin,
+    robust_lm,
+    start_consistent,
+)
 from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
 
@@ -113,11 +118,11 @@ def solve_start(
     sols.sort(key=lambda c_x: c_x[0])
     best_cost, best, _ = sols[0]
     yaw_b = best[2]
-    other = [c for c, x, _ in sols[1:] if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > 0.2]
-    rms = math.sqrt(2.0 * best_cost / len(z_r))
-    max_rms = max(MAX_RMS_M, MAX_RMS_REL * float(np.median(z_r)))
-    if rms > max_rms or (other and other[0] < MIN_COST_RATIO * best_cost):
+    rivals = [c for c, x, _ in sols[1:]
+              if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > RIVAL_SEPARATION]
+    if not _accepted(fun_jac(best)[0], z_r, best_cost, rivals):
         return None
+    rms = math.sqrt(2.0 * best_cost / len(z_r))
     pose_now = se2_compose(np.array([best[0], best[1], best[2]]), track.at(t_now))
     r_now = _rot_z(float(pose_now[2]))
     if len(track.t) and track.t[-1] <= t_now:
@@ -138,6 +143,17 @@ def solve_start(
         range_sigma=rms,
         range_scale_sigma=_scale_std(*fun_jac(best), rms),
     )
+
+
+def _accepted(res: np.ndarray, z_r: np.ndarray, best_cost: float, rivals: list[float]) -> bool:
+    """The acceptance rule of every start solve (`initialisation.start_consistent`,
+    `rival_margin`), on residuals `res` (m) of ranges `z_r` (m) and soft-L1 costs (m^2) in
+    range sigmas of SOFT_L1_M / SOFT_L1_SIGMAS (the heading solve's soft-L1 scale is
+    SOFT_L1_SIGMAS sigmas, too)."""
+    sig = SOFT_L1_M / SOFT_L1_SIGMAS
+    consistent, _, _ = start_consistent(res / sig, float(np.median(z_r)), sig)
+    return consistent and rival_margin(
+        best_cost / sig**2, [c / sig**2 for c in rivals]) >= RIVAL_MARGIN
 
 
 def _scale_std(f: np.ndarray, jac: np.ndarray, rms: float) -> float:
@@ -203,12 +219,10 @@ def solve_static(
         return None
     sols.sort(key=lambda c_x: c_x[0])
     best_cost, best = sols[0]
-    other = [c for c, x in sols[1:] if np.hypot(*(x[:2] - best[:2])) > 1.0]
+    rivals = [c for c, x in sols[1:] if np.hypot(*(x[:2] - best[:2])) > 1.0]
+    if not _accepted(fun_jac(best)[0], z_r, best_cost, rivals):
+        return None
     rms = math.sqrt(2.0 * best_cost / len(z_r))
-    if rms > max(MAX_RMS_M, MAX_RMS_REL * float(np.median(z_r))):
-        return None
-    if other and other[0] < MIN_COST_RATIO * best_cost:
-        return None
     return best[:2].copy(), float(best[2]), rms
 
 
