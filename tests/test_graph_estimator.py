@@ -347,7 +347,8 @@ def test_batch_fits_the_wheel_time_offset():
 
 def test_wheel_time_offset_search_steps_past_its_edge(factory, monkeypatch):
     """Test that the offset search goes on past +1 period while the edge scores best and
-    places the vertex between grid points: a motion-fit error (x - 2.3)^2 in periods."""
+    places the vertex between grid points, scoring no offset on the side that loses (from
+    0 and +-0.5 periods): a motion-fit error (x - 2.3)^2 in periods."""
     from uwbfuse.graph import offline
     from uwbfuse.graph.builder import GraphBuilder
 
@@ -366,6 +367,7 @@ def test_wheel_time_offset_search_steps_past_its_edge(factory, monkeypatch):
     cfg.graph = cfg.graph.model_copy(update={"estimate_wheel_noise": False})
     found = estimate(factory.log, Method.BATCH, cfg).report["batch"]["wheel_time_offset_s"]
     assert found * NS_PER_S / period == pytest.approx(2.3, abs=0.02)
+    assert min(offsets) / period == pytest.approx(-0.5, abs=0.01)
 
 
 def test_batch_on_a_mostly_static_room_keeps_the_range_scale_off():

@@ -142,6 +142,10 @@ class GraphEstimator(EstimatorBase):
         self._imu_inflation: float | None = None
         # batch: the keyframes its noise and time-offset fits look at (`_evidence_windows`)
         self._windows: EvidenceWindows | None = None
+        # batch: what its fits start from, built once per solve (`batch_inputs`), and the
+        # motion fit's solution at the chosen wheel offset (a start for the IMU noise fit)
+        self._initial: gtsam.Values | None = None
+        self._motion_fit: gtsam.Values | None = None
         # online IMU noise fits (`_fit_imu_online`): the last one's graph age, s, and each
         self._imu_fit_age: float | None = None
         self._imu_fits: list[dict[str, Any]] = []
@@ -748,6 +752,7 @@ class GraphEstimator(EstimatorBase):
         # one, its last, for the wheel fits, then the whole log's own
         b.complete_imu_records(b.imu_inflation)
         self._windows = None
+        self._initial = self._motion_fit = None
         self._complete_wheel_records()
         self._fit_imu_noise()
         graph, initial, rec = self.batch_inputs()
@@ -760,10 +765,10 @@ class GraphEstimator(EstimatorBase):
     def _complete_wheel_records(self) -> None:
         """The offline solve's wheel factors from the complete track
         (`complete_wheel_records`), at the wheel-to-range time offset that fits best: the
-        maximum-likelihood one over -1 .. +1 wheel periods in half periods (which interval
-        a sample covers is what logs disagree on), stepping on past an edge while the edge
-        scores best (to WHEEL_OFFSET_MAX_PERIODS), each scored by the error after one Huber
-        LM of the recorded graph with the ranges at the online robust sigma
+        maximum-likelihood one on a grid of half wheel periods (which interval a sample
+        covers is what logs disagree on), from 0 and +-0.5 periods, stepping on past an edge
+        while the edge scores best (to WHEEL_OFFSET_MAX_PERIODS), each scored by the error
+        after one Huber LM of the recorded graph with the ranges at the online robust sigma
         (`offline.motion_fit_error`); then, at that offset, the wheel noise of greatest
         evidence (`noise_fit.fit_wheel_noise`, `graph.estimate_wheel_noise`)."""
         b = self.builder
@@ -787,7 +792,7 @@ class GraphEstimator(EstimatorBase):
                     b.robust_sigma(), b.with_bias)
             return errs[f]
 
-        for f in (0.0, 0.5, -0.5, 1.0, -1.0):
+        for f in (0.0, 0.5, -0.5):
             score(f)
         # while the best offset is the search's edge, step on past it
         while True:
@@ -809,6 +814,7 @@ class GraphEstimator(EstimatorBase):
         log.debug("batch wheel time offset: errors %s at %s periods -> %.3f",
                   [round(errs[x], 2) for x in steps], steps, f)
         self._wheel_offset_s = float(f * period / NS_PER_S)
+        self._motion_fit = solved[best]
         b.complete_wheel_records(round(f * period))
         if self.cfg.graph.estimate_wheel_noise:
             graph, _, rec = self.batch_inputs()  # from the motion fit at the best offset
@@ -824,7 +830,8 @@ class GraphEstimator(EstimatorBase):
     def _fit_imu_noise(self) -> None:
         """`graph.imu_noise_inflation = "auto"`: the offline solve's IMU factors at the
         inflation of greatest evidence over the whole log (`noise_fit.fit_imu_noise`,
-        searched from the one the online pass used; its wheel factors as completed)."""
+        searched from the one the online pass used; its wheel factors as completed; its LM
+        from the wheel offset search's solution when there was one)."""
         b = self.builder
         assert b is not None
         if self.cfg.graph.imu_noise_inflation != "auto" or not b.imu_records.k:
@@ -832,7 +839,8 @@ class GraphEstimator(EstimatorBase):
         graph, initial, rec = self.batch_inputs()
         win = self._evidence_windows()
         self._imu_inflation = noise_fit.fit_imu_noise(
-            self.cfg, win.graph(graph, initial), initial,
+            self.cfg, win.graph(graph, initial),
+            initial if self._motion_fit is None else self._motion_fit,
             win.ranges(rec), b.scale if b.with_scale else None, b.robust_sigma(),
             b.with_bias, win.imu(b.imu_records), win.pose_index(b.pose_index),
             b.imu_inflation)
@@ -869,6 +877,8 @@ class GraphEstimator(EstimatorBase):
         (`RangeRecords.arrays`). `graph.reference` solves the same problem plainly."""
         b = self.builder
         assert b is not None and b.full_graph is not None and b.full_values is not None
+        if self._initial is not None:
+            return b.full_graph, self._initial, b.records.arrays()
         n = b.k + 1
         initial = gtsam.Values()
         for k in range(n):
@@ -883,6 +893,7 @@ class GraphEstimator(EstimatorBase):
                 initial.insert(D(a), float(b.range_bias[a]))
         if b.with_bias:
             initial.insert(C, float(np.mean(b.range_bias)) if len(b.range_bias) else 0.0)
+        self._initial = initial
         return b.full_graph, initial, b.records.arrays()
 
     def _interpolate(self, poses: list[gtsam.Pose3], covs: np.ndarray | None) -> PoseStream:
