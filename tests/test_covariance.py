@@ -176,6 +176,10 @@ def _pooled_share(method: Method, scenarios: list[str], seeds: list[int]) -> flo
     # the EKF reports the consider covariance (`filters.consider`): measured pooled 0.963
     # (room 1.000 / 1.000 / 0.995, factory 0.886 / 0.933 / 0.965; its own P gave 0.797)
     Method.EKF,
+    pytest.param(Method.UKF, marks=pytest.mark.xfail(
+        reason="ukf: its consider covariance by statistical linearisation gives pooled "
+        "0.786 (its own P 0.617): on factory its errors exceed the EKF's (ATE 0.12-0.13 "
+        "against 0.08-0.11 m) at a smaller reported spread")),
 ], ids=lambda m: m.value)
 def test_95_percent_ellipse_holds_95_percent_of_the_errors(method: Method) -> None:
     """test that 85-99 % of the 2-D position errors (room and factory, 3 seeds x 45 s,

@@ -37,3 +37,30 @@ def test_consider_covariance_propagates_and_forgets_a_decaying_excess() -> None:
     np.testing.assert_allclose(cc.p[1, 1], 0.5)
     np.testing.assert_allclose(cc.p[0, 1], 0.27)
     np.testing.assert_allclose(cc.state, [[1.0]])
+
+
+def test_linearised_update_is_the_kalman_update_of_a_linear_measurement() -> None:
+    """test that the sigma-point form (`update_linearised`: gain and rows from the joint
+    covariance of state and predicted measurements) applies, for measurements linear in
+    the state, the very update the linear filter's gain and rows give: two ranges of
+    anchors 1 and 0 and one row without an anchor, the second range not used"""
+    rng = np.random.default_rng(4)
+    n, m = 4, 3
+    a = rng.normal(size=(n, n))
+    p = a @ a.T + np.eye(n)
+    h = rng.normal(size=(m, n))
+    c = np.block([[p, p @ h.T], [h @ p, h @ p @ h.T]])  # (x, h x): exact sigma points
+    var = np.array([0.04, 0.09, 0.01])
+    rows = np.array([0, 2])
+    anchors = np.array([1, -1])
+    excess = np.array([0.02, 0.05])
+    sigma = ConsiderCovariance(p, excess)
+    sigma.update_linearised(c, rows, var[rows], anchors)
+    hr = h[rows]
+    k = p @ hr.T @ np.linalg.inv(hr @ p @ hr.T + np.diag(var[rows]))
+    linear = ConsiderCovariance(p, excess)
+    linear.update(k, hr, var[rows], anchors)
+    np.testing.assert_allclose(sigma.p, linear.p, rtol=1e-9, atol=1e-12)
+    # the filter's own posterior where the excesses are zero, and the excess read
+    np.testing.assert_allclose(linear.state, (np.eye(n) - k @ hr) @ p
+                               + k[:, :1] @ k[:, :1].T * excess[1], rtol=1e-9, atol=1e-12)

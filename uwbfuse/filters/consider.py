@@ -23,14 +23,16 @@ class ConsiderCovariance:
 
     def update(self, k: F64, h: F64, r: F64, anchor: np.ndarray | None) -> None:
         """The filter's update with gain k (n,m) on rows h (m,n) of noise variances r (m,)
-        or covariance r (m,m); rows with an `anchor` (m,) index also read that anchor's
-        excess (None: no range rows). Joseph form expanded with the gain zero on the
-        excesses, P - K H P - P H^T K^T + K S K^T, so valid for any gain."""
+        or covariance r (m,m); rows with an `anchor` (m,) index >= 0 also read that
+        anchor's excess (None, or -1 for a row: no range). Joseph form expanded with the
+        gain zero on the excesses, P - K H P - P H^T K^T + K S K^T, so valid for any gain."""
         n = self.n
         hh = np.zeros((h.shape[0], len(self.p)))
         hh[:, :n] = h
         if anchor is not None:
-            hh[np.arange(h.shape[0]), n + np.asarray(anchor)] = 1.0
+            a = np.asarray(anchor, np.int64)
+            rows = np.flatnonzero(a >= 0)
+            hh[rows, n + a[rows]] = 1.0
         ph = self.p @ hh.T                                  # (N,m)
         s = hh @ ph + (np.diag(r) if np.ndim(r) == 1 else r)
         kph = k @ ph.T                                      # (n,N)
@@ -38,6 +40,24 @@ class ConsiderCovariance:
         self.p[:, :n] -= kph.T
         self.p[:n, :n] += k @ s @ k.T
         self.p = 0.5 * (self.p + self.p.T)  # the expanded form drifts from symmetric
+
+    def update_linearised(self, c: F64, rows: np.ndarray, var: F64, anchor: np.ndarray
+                          ) -> None:
+        """A sigma-point filter's update by statistical linearisation: c (n+m, n+m) the
+        joint covariance of (state error, predicted measurements) before the update, `rows`
+        the measurements it used (indices into m) with the noise variances `var` it gave
+        them, `anchor` (len(rows),) their anchors (-1: no range). Its composite gain over
+        those rows is K = Pxz (Pzz + R)^-1 (sequential scalar updates at fixed variances
+        condition the same joint Gaussian); the rows read the state through H = Pxz^T P^-1
+        plus a white residual of covariance Pzz - H Pxz, the part the linear model misses."""
+        n = self.n
+        idx = n + np.asarray(rows, np.int64)
+        pxz = c[:n, idx]
+        pzz = c[np.ix_(idx, idx)]
+        s = pzz + np.diag(var)
+        k = np.linalg.solve(s, pxz.T).T
+        h = np.linalg.lstsq(c[:n, :n], pxz, rcond=None)[0].T  # P symmetric: Pxz^T P^-1
+        self.update(k, h, s - h @ pxz, anchor)
 
     def propagate(self, t: F64, q: F64, f: F64, qc: F64) -> None:
         """The filter's transition t (n,n) and noise q (n,n); each excess times f (M,) plus

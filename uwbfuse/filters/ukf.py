@@ -34,6 +34,12 @@ measurement of the window is predicted on each sigma point's trajectory at its o
 and the update corrects the state at the window end through the sigma points' cross
 covariance (a UKF over the window; the process noise of the window, added to the end
 covariance, is not seen by the window's own measurements).
+
+Pose covariance (IMU-driven, with range-bias states, where pose covariances are wanted):
+the EKF's consider analysis (`filters.consider`: an anchor's NLOS excess persists over
+its episode), applied by statistical linearisation: the window's transition from the
+sigma points' cross covariance of end and start, each update through its composite gain
+Pxz (Pzz + R)^-1 and rows Pxz^T P^-1. The estimate is the filter's either way.
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ from uwbfuse.filters.adaptive_noise import (
     sequential_ranges,
 )
 from uwbfuse.filters.base import InitialiserLike, build_filter
+from uwbfuse.filters.consider import ConsiderCovariance
 from uwbfuse.filters.ekf import ErrorStateEkf, UnicycleEkf
 from uwbfuse.filters.models import (
     BA,
@@ -104,6 +111,7 @@ def _unscented_update(
     noise: RangeNoise, anchor: np.ndarray,
     row_noise: list[tuple[InnovationVariance, int]] | None = None,
     evidence: F64 | None = None,
+    consider: ConsiderCovariance | None = None,
 ) -> tuple[F64, F64, F64, np.ndarray, F64, np.ndarray, float]:
     """Update from sigma-point states and predicted measurements.
 
@@ -125,7 +133,8 @@ def _unscented_update(
     before the update, the accepted-row mask, the normalised innovations squared of the
     ranges, which of those measured short (negative innovation) and the log density
     (nats) of the rows after the ranges. `evidence` (len(anchor),): the NLOS classifier's
-    log-odds per range, nats.
+    log-odds per range, nats. `consider`: the consider analysis (`filters.consider`) the
+    same update is applied to, by statistical linearisation.
     """
     nr = len(anchor)
     n, m = ex.shape[1], zs.shape[1]
@@ -149,6 +158,9 @@ def _unscented_update(
     unit = np.eye(n + m)[n:]
     corr = np.zeros(n + m)
     row_ll = 0.0
+    c0 = c.copy() if consider is not None else None
+    var = np.asarray(r, float).copy()
+    gains: list | None = [] if consider is not None else None
     if m > nr:
         s_all = np.diag(c)[n:]
         start = nr
@@ -159,7 +171,15 @@ def _unscented_update(
         row_ll = gaussian_log_density(y[nr:], s_rows)
     if nr:
         c, corr, keep[:nr], nis = sequential_ranges(
-            noise, c, corr, unit[:nr], y[:nr], anchor, z[:nr], evidence)
+            noise, c, corr, unit[:nr], y[:nr], anchor, z[:nr], evidence, gains)
+    if consider is not None and c0 is not None:
+        for i, _, v in gains or ():  # the variance each accepted range was weighed at
+            var[i] = v
+        used = np.flatnonzero(keep)
+        row_anchor = np.full(len(used), -1, np.int64)  # the rows after the ranges: none
+        ranges = used < nr
+        row_anchor[ranges] = np.asarray(anchor, np.int64)[used[ranges]]
+        consider.update_linearised(c0, used, var[used], row_anchor)
     return ex_mean + corr[:n], c[:n, :n], y, keep, nis, short, row_ll
 
 
@@ -171,7 +191,9 @@ class ErrorStateUkf(ErrorStateEkf):
     """
 
     RANGE_SCALE = False  # range biases, no common scale state (module docstring)
-    CONSIDER = False  # its sigma-point updates have no linear gain to apply the analysis to
+    # the consider analysis by statistical linearisation of its sigma points (transition
+    # and measurement rows from their cross covariances)
+    CONSIDER = True
 
     def __init__(
         self,
@@ -218,7 +240,10 @@ class ErrorStateUkf(ErrorStateEkf):
         ex_mean = wts.wm @ ex
         dxx = ex - ex_mean
         q = self._q(t)
-        p_prior = (dxx.T * wts.wc) @ dxx + (augment(q, qb) if nb else q)
+        q_full = augment(q, qb) if nb else q
+        p_prior = (dxx.T * wts.wc) @ dxx + q_full
+        if self.consider is not None:
+            self._consider_propagate(off, dxx, q_full, f)
         zs: list[F64] = []
         zm: list[F64] = []
         rv: list[F64] = []
@@ -252,6 +277,7 @@ class ErrorStateUkf(ErrorStateEkf):
             corr, p_prior, self.y, keep, nis, self.short, row_ll = _unscented_update(
                 wts, ex, np.concatenate(zs, axis=1), np.concatenate(zm), np.concatenate(rv),
                 p_prior, self.range_noise, ra, noise, self.range_evidence(rt, ra),
+                self.consider,
             )
             used = keep[:nr]
             self.nis = nis
@@ -262,6 +288,16 @@ class ErrorStateUkf(ErrorStateEkf):
         if nb:
             self.rbias = f * self.rbias + corr[N_ERR:]
         return used
+
+    def _consider_propagate(self, off: F64, dxx: F64, q_full: F64, f: F64) -> None:
+        """The window's transition in the consider analysis: F = P_(end,start) P^-1 from the
+        sigma points' start offsets `off` and end deviations `dxx` (their start covariance
+        is P exactly), the filter's noise `q_full`, each anchor's excess decaying by f."""
+        assert self.consider is not None
+        cross = (dxx.T * self.weights.wc) @ off
+        t_eff = np.linalg.lstsq(self.P, cross.T, rcond=None)[0].T  # P symmetric
+        fc = np.full(len(self.anchors), f[0])
+        self.consider.propagate(t_eff, q_full, fc, (1.0 - fc * fc) * self.consider_variance())
 
     def _q(self, t: float) -> F64:
         """Discrete process noise over t s: white accel/gyro noise and bias random walks.
