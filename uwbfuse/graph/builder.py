@@ -586,7 +586,12 @@ class GraphBuilder:
     def _wheel_tag(self, t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b (N,) in the base frame at t_a ((N,) or
         (1,) for all) by the wheel track (metres)."""
-        rel = se2_between(self.wheel.at(t_a), self.wheel.at(np.asarray(t_b, np.int64)))
+        return self._tag_from(se2_between(self.wheel.at(t_a),
+                                          self.wheel.at(np.asarray(t_b, np.int64))))
+
+    def _tag_from(self, rel: np.ndarray) -> np.ndarray:
+        """Tag antenna positions (N,3) in the base frame at t_a from the wheel track's
+        motion rel (N,3) (x m, y m, theta rad) from t_a to each range's time."""
         c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
         tx, ty, tz = self.tag
         return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
@@ -771,6 +776,10 @@ class GraphBuilder:
         pieces = None
         new_pose = pose_a
         new_vel = vel_a
+        ranges = self._take_ranges(t_b)
+        # the wheel track at t_a, t_b and the ranges' stamps in one query (`_wheel_tag`)
+        track = (self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
+                 if self.has_wheel else None)
         if self.has_imu:
             gy, ac, dts = self.imu.pieces(t_a, t_b)
             if len(dts) == 0:
@@ -789,8 +798,8 @@ class GraphBuilder:
             inc.values.insert(B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
-        if self.has_wheel:
-            d = self.wheel.between(t_a, t_b)
+        if track is not None:
+            d = se2_between(track[0], track[1])  # `WheelTrack.between(t_a, t_b)`
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
@@ -829,7 +838,8 @@ class GraphBuilder:
                     self.pose_index.append(self.full_graph.size() + inc.graph.size())
                 inc.graph.add(f)
         self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
-        self._add_ranges(inc, ka, t_a, t_b, pose_a, vel_a)
+        self._add_ranges(inc, ka, t_a, pose_a, vel_a, ranges,
+                         None if track is None or not len(self.wheel) else track)
         self._stamp_globals(inc, self.stamp(k))
         self.k = k
         self.pose, self.vel = new_pose, new_vel
@@ -875,9 +885,12 @@ class GraphBuilder:
                 rec.tag_in_kf[j] = tag
 
     def _add_ranges(
-        self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
+        self, inc: Increment, ka: int, t_a: int, pose_a: gtsam.Pose3, vel_a: np.ndarray,
+        ranges: tuple[np.ndarray, ...], track: np.ndarray | None,
     ) -> None:
-        t, a, z_raw, q = self._take_ranges(t_b)
+        """The keyframe's `ranges` (`_take_ranges`) as factors; `track`: the wheel track
+        at t_a, t_b and the ranges' stamps (None: `tag_in_keyframe` without it)."""
+        t, a, z_raw, q = ranges
         # the learned classifier's evidence (nats) adds to each range's NLOS log-likelihood:
         # with it the range's prior odds of NLOS are the classifier's
         evidence = (self.priors.log_odds(q) if self.priors is not None
@@ -885,7 +898,8 @@ class GraphBuilder:
         if len(t) == 0:
             return
         z = z_raw / (1.0 + self.scale[a]) if self.with_scale else z_raw
-        tag_kf = self.tag_in_keyframe(t_a, t, pose_a, vel_a)
+        tag_kf = (self.tag_in_keyframe(t_a, t, pose_a, vel_a) if track is None
+                  else self._tag_from(se2_between(track[:1], track[2:])))
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)

@@ -9,6 +9,7 @@ the relative motion between any two times is one SE(2) composition.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -32,6 +33,19 @@ def arc_steps(v: np.ndarray, dt: np.ndarray, yaw0: np.ndarray | float,
     lx = np.where(small, s * (1.0 - dyaw * dyaw / 6.0), s * np.sin(th_safe) / th_safe)
     ly = np.where(small, s * dyaw / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
     c, sn = np.cos(yaw0), np.sin(yaw0)
+    return c * lx - sn * ly, sn * lx + c * ly
+
+
+def arc_step(v: float, dt: float, yaw0: float, dyaw: float) -> tuple[float, float]:
+    """`arc_steps` for one arc in Python floats (the same formula, operation for operation:
+    bit-identical, tests/test_graph_units.py): the per-keyframe paths, where numpy's per-call
+    cost is ~10x the arithmetic."""
+    s = v * dt
+    if abs(dyaw) < 1e-6:  # rad, as in `arc_steps`
+        lx, ly = s * (1.0 - dyaw * dyaw / 6.0), s * dyaw / 2.0
+    else:
+        lx, ly = s * math.sin(dyaw) / dyaw, s * (1.0 - math.cos(dyaw)) / dyaw
+    c, sn = math.cos(yaw0), math.sin(yaw0)
     return c * lx - sn * ly, sn * lx + c * ly
 
 
@@ -67,21 +81,31 @@ def unicycle_track(
     return xb, yb, yaw_b, yaw_b[:, :-1] + 0.5 * dth[None, :]
 
 
+def _se2_out(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The (..., 3) result array of a broadcast SE(2) operation on a and b (filled column by
+    column: np.stack's per-call cost was a third of these functions on keyframe-sized input)."""
+    return np.empty((*np.broadcast_shapes(np.shape(a)[:-1], np.shape(b)[:-1]), 3))
+
+
 def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a (+) b for SE(2) poses (x, y, theta), broadcasting over leading axes."""
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [a[..., 0] + c * b[..., 0] - s * b[..., 1],
-         a[..., 1] + s * b[..., 0] + c * b[..., 1],
-         a[..., 2] + b[..., 2]], axis=-1)
+    out = _se2_out(a, b)
+    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 2] = a[..., 2] + b[..., 2]
+    return out
 
 
 def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a^-1 (+) b for SE(2) poses (x, y, theta)."""
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    dth = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
+    out = _se2_out(a, b)
+    out[..., 0] = c * dx + s * dy
+    out[..., 1] = -s * dx + c * dy
+    out[..., 2] = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
+    return out
 
 
 class WheelTrack:
@@ -192,8 +216,9 @@ class WheelTrack:
         base_i = np.maximum(i - 1, 0)
         vel_i = np.minimum(i, n - 1)
         tau = (tq - t[base_i]).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(self._v[vel_i], self._w[vel_i], tau)
-        out = se2_compose(self._pose[base_i], np.stack([dx, dy, dth], axis=-1))
+        step = np.empty((len(tq), 3))
+        step[:, 0], step[:, 1], step[:, 2] = _arcs(self._v[vel_i], self._w[vel_i], tau)
+        out = se2_compose(self._pose[base_i], step)
         return out if np.ndim(t_ns) else out[0]
 
     def between(self, t_a: np.ndarray | int, t_b: np.ndarray | int) -> np.ndarray:
@@ -214,17 +239,16 @@ class WheelTrack:
         go = np.flatnonzero(~still)
         if len(go) == 0:
             return out[0] if scalar else out
-        dx, dy, dth, tau = self._pieces(ta[go], tb[go])
         q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
         # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side; one
         # pair in Python floats (one keyframe interval online: a few pieces, where numpy's
         # per-call cost is ~10x the arithmetic)
         if scalar:
             st: tuple = (0.0,) * 7
-            for piece in zip(dx[0].tolist(), dy[0].tolist(), dth[0].tolist(), tau[0].tolist(),
-                             strict=True):
+            for piece in self._pieces_one(int(ta[0]), int(tb[0])):
                 st = _propagate_piece(st, *piece, q, math.cos, math.sin)
         else:
+            dx, dy, dth, tau = self._pieces(ta[go], tb[go])
             st = (np.zeros(len(go)),) * 7
             for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
                 new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
@@ -253,6 +277,27 @@ class WheelTrack:
         tau = np.diff(edges, axis=1).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
         return dx, dy, dth, tau
+
+
+    def _pieces_one(self, t_a: int, t_b: int) -> list[tuple[float, float, float, float]]:
+        """`_pieces` of one interval t_a < t_b ns in Python floats, without the padding:
+        (dx, dy, dtheta, tau) per piece, by `arc_step` (bit-identical, tested)."""
+        t = self.t
+        n = len(t)
+        i0 = int(np.searchsorted(t, t_a, side="right"))
+        i1 = int(np.searchsorted(t, t_b, side="left"))
+        edges = [t_a, *t[i0:i1].tolist(), t_b]
+        pairs = list(itertools.pairwise(edges))
+        idx = np.clip(np.searchsorted(t, [(e0 + e1) // 2 for e0, e1 in pairs], side="left"),
+                      0, n - 1)
+        out = []
+        for (e0, e1), v, w in zip(pairs, self.v[idx].tolist(), self.w[idx].tolist(),
+                                  strict=True):
+            tau = float(e1 - e0) / NS_PER_S
+            th = w * tau
+            dx, dy = arc_step(v, tau, 0.0, th)
+            out.append((dx, dy, th, tau))
+        return out
 
 
 def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,
