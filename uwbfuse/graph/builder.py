@@ -300,6 +300,7 @@ class GraphBuilder:
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
         self.z0 = planar_height(anchors, float(start.position[2]))
+        self._planar_noise: gtsam.noiseModel.Diagonal | None = None  # `_planar_prior`'s
         self._init_nlos_state()
         # the IMU noise inflation of the factors built from now on (`set_imu_inflation`).
         # `auto` with ranges starts as loose as the noise fit may go (a tight IMU factor
@@ -648,10 +649,12 @@ class GraphBuilder:
         ypr = pose.rotation().ypr()
         mean = gtsam.Pose3(gtsam.Rot3.Ypr(float(ypr[0]), 0.0, 0.0),
                            np.array([pose.x(), pose.y(), self.z0]))
-        big = 1e3
-        s = pose_sigmas((self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big),
-                        (big, big, self.g.planar_sigma_z))
-        return gtsam.PriorFactorPose3(X(k), mean, diagonal(s))
+        if self._planar_noise is None:  # the config's: one (immutable) model for every prior
+            big = 1e3
+            self._planar_noise = diagonal(pose_sigmas(
+                (self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big),
+                (big, big, self.g.planar_sigma_z)))
+        return gtsam.PriorFactorPose3(X(k), mean, self._planar_noise)
 
     def first(self) -> Increment:
         """Keyframe 0: priors from the initial state, anchors and range biases."""
@@ -777,9 +780,12 @@ class GraphBuilder:
         new_pose = pose_a
         new_vel = vel_a
         ranges = self._take_ranges(t_b)
-        # the wheel track at t_a, t_b and the ranges' stamps in one query (`_wheel_tag`)
-        track = (self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
-                 if self.has_wheel else None)
+        # the wheel track's motion from t_a to t_b and to the ranges' stamps, one query
+        # (`WheelTrack.between`, `_wheel_tag`)
+        rel = None
+        if self.has_wheel:
+            track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
+            rel = se2_between(track[:1], track[1:])
         if self.has_imu:
             gy, ac, dts = self.imu.pieces(t_a, t_b)
             if len(dts) == 0:
@@ -798,8 +804,8 @@ class GraphBuilder:
             inc.values.insert(B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
-        if track is not None:
-            d = se2_between(track[0], track[1])  # `WheelTrack.between(t_a, t_b)`
+        if rel is not None:
+            d = rel[0]
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
@@ -839,7 +845,7 @@ class GraphBuilder:
                 inc.graph.add(f)
         self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
         self._add_ranges(inc, ka, t_a, pose_a, vel_a, ranges,
-                         None if track is None or not len(self.wheel) else track)
+                         None if rel is None or not len(self.wheel) else rel[1:])
         self._stamp_globals(inc, self.stamp(k))
         self.k = k
         self.pose, self.vel = new_pose, new_vel
@@ -886,10 +892,10 @@ class GraphBuilder:
 
     def _add_ranges(
         self, inc: Increment, ka: int, t_a: int, pose_a: gtsam.Pose3, vel_a: np.ndarray,
-        ranges: tuple[np.ndarray, ...], track: np.ndarray | None,
+        ranges: tuple[np.ndarray, ...], wheel_rel: np.ndarray | None,
     ) -> None:
-        """The keyframe's `ranges` (`_take_ranges`) as factors; `track`: the wheel track
-        at t_a, t_b and the ranges' stamps (None: `tag_in_keyframe` without it)."""
+        """The keyframe's `ranges` (`_take_ranges`) as factors; `wheel_rel`: the wheel
+        track's motion (N,3) from t_a to each range (None: `tag_in_keyframe`)."""
         t, a, z_raw, q = ranges
         # the learned classifier's evidence (nats) adds to each range's NLOS log-likelihood:
         # with it the range's prior odds of NLOS are the classifier's
@@ -898,8 +904,8 @@ class GraphBuilder:
         if len(t) == 0:
             return
         z = z_raw / (1.0 + self.scale[a]) if self.with_scale else z_raw
-        tag_kf = (self.tag_in_keyframe(t_a, t, pose_a, vel_a) if track is None
-                  else self._tag_from(se2_between(track[:1], track[2:])))
+        tag_kf = (self.tag_in_keyframe(t_a, t, pose_a, vel_a) if wheel_rel is None
+                  else self._tag_from(wheel_rel))
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)

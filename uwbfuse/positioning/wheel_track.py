@@ -230,7 +230,9 @@ class WheelTrack:
                    cfg: WheelConfig) -> np.ndarray:
         """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise
         (scalars, or arrays of ns: (n, 3, 3), one per pair)."""
-        scalar = np.ndim(t_a) == 0 and np.ndim(t_b) == 0
+        q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
+        if np.ndim(t_a) == 0 and np.ndim(t_b) == 0:
+            return self._covariance_one(int(t_a), int(t_b), q)
         ta = np.atleast_1d(np.asarray(t_a, np.int64))
         tb = np.atleast_1d(np.asarray(t_b, np.int64))
         out = np.zeros((len(ta), 3, 3))
@@ -238,26 +240,30 @@ class WheelTrack:
         out[still] = np.diag([1e-6, 1e-6, 1e-6])
         go = np.flatnonzero(~still)
         if len(go) == 0:
-            return out[0] if scalar else out
-        q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
-        # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side; one
-        # pair in Python floats (one keyframe interval online: a few pieces, where numpy's
-        # per-call cost is ~10x the arithmetic)
-        if scalar:
-            st: tuple = (0.0,) * 7
-            for piece in self._pieces_one(int(ta[0]), int(tb[0])):
-                st = _propagate_piece(st, *piece, q, math.cos, math.sin)
-        else:
-            dx, dy, dth, tau = self._pieces(ta[go], tb[go])
-            st = (np.zeros(len(go)),) * 7
-            for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
-                new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
-                                       np.cos, np.sin)
-                st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
+            return out
+        # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side
+        dx, dy, dth, tau = self._pieces(ta[go], tb[go])
+        st = (np.zeros(len(go)),) * 7
+        for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
+            new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
+                                   np.cos, np.sin)
+            st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
         p00, p01, p02, p11, p12, p22, _ = st
         out[go] = np.moveaxis(np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]]),
                               -1, 0)
-        return out[0] if scalar else out
+        return out
+
+    def _covariance_one(self, t_a: int, t_b: int, q: tuple[float, float, float]) -> np.ndarray:
+        """`covariance` of one pair in Python floats (one keyframe interval online: a few
+        pieces, where numpy's per-call cost is ~10x the arithmetic; equal to the pairs'
+        pass, tests/test_wheel_track.py)."""
+        if t_b <= t_a or self._n == 0:
+            return np.diag([1e-6, 1e-6, 1e-6])
+        st: tuple = (0.0,) * 7
+        for piece in self._pieces_one(t_a, t_b):
+            st = _propagate_piece(st, *piece, q, math.cos, math.sin)
+        p00, p01, p02, p11, p12, p22, _ = st
+        return np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
 
     def _pieces(self, t_a: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, ...]:
         """Local (dx, dy, dtheta) arcs and durations tau s (n, m) of the constant-velocity
