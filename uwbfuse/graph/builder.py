@@ -263,6 +263,9 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
     return min(max(s, SIGMA_LOS_MIN), prior)
 
 
+_ROT_IDENTITY = gtsam.Rot3()  # the range factors' tag offset is a pure translation
+
+
 class GraphBuilder:
     """Turns buffered sensor data into keyframes and factors (see the module docstring)."""
 
@@ -979,7 +982,7 @@ class GraphBuilder:
         """Add one range's LOS and NLOS factors (weights 1-g, g); return their positions."""
         mix = self.mixture
         uwb = self.cfg.uwb
-        t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
+        t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf)
         if self.robust_online:
             sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
@@ -988,12 +991,13 @@ class GraphBuilder:
         w_l = 1.0 - g
         if w_l > MIN_WEIGHT:
             out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, sig_l / np.sqrt(w_l), t_tag, uwb,
+            inc.graph.add(range_factor(ka, a, z, sig_l / math.sqrt(w_l), t_tag, uwb,
                                        los_bias_key(a, self.with_bias)))
         if g > MIN_WEIGHT:
             key = self._nlos_state(inc, a, seg, e_guess)
             out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / np.sqrt(g), t_tag, uwb, key))
+            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / math.sqrt(g), t_tag, uwb,
+                                       key))
         return out
 
     def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:

@@ -108,6 +108,46 @@ def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+# samples per `WheelTrack.add` integrated in Python floats (online a batch holds the few
+# samples of one output epoch; numpy's per-call cost is then ~10x the arithmetic)
+FEW_SAMPLES = 8
+
+
+def _integrate(start: np.ndarray, v: np.ndarray, w: np.ndarray, tau: np.ndarray
+               ) -> np.ndarray:
+    """Track poses (m, 3) after each of m arcs (v m/s, w rad/s for tau s) from `start`
+    (x m, y m, theta rad): the arcs turned into the start frame and summed cumulatively."""
+    dx, dy, dth = _arcs(v, w, tau)
+    th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
+    c, s = np.cos(th_prev), np.sin(th_prev)
+    gx, gy = c * dx - s * dy, s * dx + c * dy
+    out = np.empty((len(tau), 3))
+    out[:, 0] = start[0] + np.cumsum(gx)
+    out[:, 1] = start[1] + np.cumsum(gy)
+    out[:, 2] = start[2] + np.cumsum(dth)
+    return out
+
+
+def _integrate_few(start: np.ndarray, v: np.ndarray, w: np.ndarray, tau: np.ndarray
+                   ) -> np.ndarray:
+    """`_integrate` in Python floats, the same operations in the same order (`arc_step`;
+    the running sums as np.cumsum adds them): bit-identical, tests/test_wheel_track.py."""
+    x0, y0, th0 = start.tolist()
+    out = []
+    cx = cy = cth = None  # the running sums (np.cumsum starts from the first term itself)
+    for vi, wi, ti in zip(v.tolist(), w.tolist(), tau.tolist(), strict=True):
+        th_prev = th0 + (0.0 if cth is None else cth)
+        dth = wi * ti
+        dx, dy = arc_step(vi, ti, 0.0, dth)
+        c, s = math.cos(th_prev), math.sin(th_prev)
+        gx, gy = c * dx - s * dy, s * dx + c * dy
+        cx = gx if cx is None else cx + gx
+        cy = gy if cy is None else cy + gy
+        cth = dth if cth is None else cth + dth
+        out.append((x0 + cx, y0 + cy, th0 + cth))
+    return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+
 class WheelTrack:
     """Cumulative planar dead reckoning from wheel samples, queryable at any time.
 
@@ -176,13 +216,8 @@ class WheelTrack:
             prev_t = np.concatenate([[t_ns[0]], t_ns[:-1]])
             start = np.zeros(3)
         tau = (t_ns - prev_t).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(v, omega, tau)
-        th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
-        c, s = np.cos(th_prev), np.sin(th_prev)
-        gx, gy = c * dx - s * dy, s * dx + c * dy
-        poses = np.stack([start[0] + np.cumsum(gx), start[1] + np.cumsum(gy),
-                          start[2] + np.cumsum(dth)], axis=-1)
         m = len(t_ns)
+        poses = (_integrate_few if m <= FEW_SAMPLES else _integrate)(start, v, omega, tau)
         self._reserve(m)
         sl = slice(self._n, self._n + m)
         self._t[sl], self._v[sl], self._w[sl], self._pose[sl] = t_ns, v, omega, poses
