@@ -17,6 +17,7 @@ iSAM2) and the batch solver (which also keeps every factor: `record=True`).
 
 from __future__ import annotations
 
+import bisect
 import copy
 import logging
 import math
@@ -250,6 +251,37 @@ class ResidualWindow:
 
 
 
+class MedianRing:
+    """The last `size` values (NaN: none yet) and the median of the finite ones, kept in
+    sorted order as they come and go (bisect): np.median's partition of the whole ring
+    per keyframe was a third of the online range-model scoring. The same value as
+    np.median (the same order statistics; of two, their sum halved)."""
+
+    def __init__(self, size: int) -> None:
+        self._ring = [math.nan] * size
+        self._i = 0
+        self._sorted: list[float] = []
+
+    def add(self, values: list[float]) -> None:
+        """Values in order; each replaces the oldest once the ring is full."""
+        for x in values:
+            old = self._ring[self._i]
+            if math.isfinite(old):
+                del self._sorted[bisect.bisect_left(self._sorted, old)]
+            if math.isfinite(x):
+                bisect.insort(self._sorted, x)
+            self._ring[self._i] = x
+            self._i = (self._i + 1) % len(self._ring)
+
+    def median(self) -> float | None:
+        """Median of the finite values held, None without any."""
+        v = self._sorted
+        h = len(v) // 2
+        if not v:
+            return None
+        return v[h] if len(v) % 2 else (v[h - 1] + v[h]) / 2
+
+
 def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> float | None:
     """LOS sigma (m) from the MAD of LOS residuals `r` (m; responsibility g < 0.5, |r| < 1 m),
     the prior counting as n0 ranges; within [SIGMA_LOS_MIN, prior]."""
@@ -481,8 +513,7 @@ class GraphBuilder:
         # early evidence, the graph lost more where the mixture later proved right (factory)
         # than it gained where it did not (Plaza)
         self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
-        self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
-        self._abs_i = 0
+        self._abs_r = MedianRing(PREQUENTIAL_WINDOW)  # |one-step residual| ring (m)
         self._robust_sigma: float | None = None  # cached robust_sigma() of the ring
 
     # ---------------------------------------------------------------- data
@@ -1077,9 +1108,9 @@ class GraphBuilder:
         """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual| (one
         median per batch of new residuals, not per range)."""
         if self._robust_sigma is None:
-            seen = self._abs_r[np.isfinite(self._abs_r)]
-            self._robust_sigma = self.cfg.uwb.sigma if len(seen) == 0 else float(
-                np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
+            med = self._abs_r.median()
+            self._robust_sigma = self.cfg.uwb.sigma if med is None else min(
+                max(NORMAL_MAD_SCALE * med, SIGMA_LOS_MIN), 1.0)
         return self._robust_sigma
 
     def prequential_verdict(self) -> str | None:
@@ -1116,7 +1147,6 @@ class GraphBuilder:
         if self.g.range_model == "mixture":
             return
         n = len(r_los)
-        idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
             p = np.clip(prior, 1e-3, 1.0 - 1e-3)
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
@@ -1127,8 +1157,7 @@ class GraphBuilder:
             self._pq_n += n
             self._pq_sum += float(np.sum(d))
             self._pq_sum2 += float(np.sum(d * d))
-        self._abs_r[idx] = np.abs(r_los)
-        self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
+        self._abs_r.add(np.abs(r_los).tolist())
         self._robust_sigma = None  # the ring moved
         self.prequential_n += n
 

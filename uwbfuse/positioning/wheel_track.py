@@ -84,7 +84,8 @@ def unicycle_track(
 def _se2_out(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The (..., 3) result array of a broadcast SE(2) operation on a and b (filled column by
     column: np.stack's per-call cost was a third of these functions on keyframe-sized input)."""
-    return np.empty((*np.broadcast_shapes(np.shape(a)[:-1], np.shape(b)[:-1]), 3))
+    sa, sb = np.shape(a)[:-1], np.shape(b)[:-1]
+    return np.empty((*(sa if sa == sb else np.broadcast_shapes(sa, sb)), 3))
 
 
 def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -323,16 +324,16 @@ class WheelTrack:
     def _pieces_one(self, t_a: int, t_b: int) -> list[tuple[float, float, float, float]]:
         """`_pieces` of one interval t_a < t_b ns in Python floats, without the padding:
         (dx, dy, dtheta, tau) per piece, by `arc_step` (bit-identical, tested)."""
-        t = self.t
-        n = len(t)
-        i0 = int(np.searchsorted(t, t_a, side="right"))
-        i1 = int(np.searchsorted(t, t_b, side="left"))
+        n = self._n
+        t = self._t[:n]
+        i0 = int(t.searchsorted(t_a, side="right"))
+        i1 = int(t.searchsorted(t_b, side="left"))
         edges = [t_a, *t[i0:i1].tolist(), t_b]
         pairs = list(itertools.pairwise(edges))
-        idx = np.clip(np.searchsorted(t, [(e0 + e1) // 2 for e0, e1 in pairs], side="left"),
-                      0, n - 1)
+        idx = [min(i, n - 1) for i in  # >= 0
+               t.searchsorted([(e0 + e1) // 2 for e0, e1 in pairs], side="left").tolist()]
         out = []
-        for (e0, e1), v, w in zip(pairs, self.v[idx].tolist(), self.w[idx].tolist(),
+        for (e0, e1), v, w in zip(pairs, self._v[idx].tolist(), self._w[idx].tolist(),
                                   strict=True):
             tau = float(e1 - e0) / NS_PER_S
             th = w * tau
