@@ -79,3 +79,22 @@ def test_few_samples_integrate_as_the_array_pass():
     big.add(t[:250], v[:250], w[:250])
     big.add(t[250:], v[250:], w[250:])
     np.testing.assert_allclose(one.pose, big.pose, rtol=0, atol=1e-9)
+
+
+def test_between_few_equals_between_bit_for_bit():
+    """Test that a keyframe's motions in Python floats (`between_few`) equal `between` over
+    arrays exactly: times before, inside and after the track, on samples, on an empty track."""
+    rng = np.random.default_rng(14)
+    t = np.cumsum(rng.integers(5_000_000, 40_000_000, 300)) + NS
+    v, w = rng.normal(0.8, 0.5, 300), rng.normal(0.0, 0.7, 300)
+    w[::6] = 0.0
+    track = WheelTrack()
+    assert np.array_equal(track.between_few(int(t[0]), [int(t[1])]), np.zeros((1, 3)))
+    track.add(t, v, w)
+    for _ in range(300):
+        t_a = int(rng.integers(int(t[0]) - NS, int(t[-1]) + NS))
+        if rng.random() < 0.2:
+            t_a = int(t[rng.integers(0, 300)])
+        t_b = (t_a + rng.integers(-20_000_000, 300_000_000, rng.integers(1, 17))).tolist()
+        ref = track.between(np.full(len(t_b), t_a, np.int64), np.array(t_b, np.int64))
+        assert np.array_equal(_bits(track.between_few(t_a, t_b)), _bits(ref))

@@ -55,6 +55,7 @@ from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import huber_log_density, los_bias_key, nlos_state_factors, range_factor
 from uwbfuse.graph.wheel import (
+    FEW_QUERIES,
     WheelTrack,
     between_factor,
     between_factors,
@@ -629,8 +630,11 @@ class GraphBuilder:
         motion rel (N,3) (x m, y m, theta rad) from t_a to each range's time."""
         c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
         tx, ty, tz = self.tag
-        return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
-                                np.full(len(rel), tz)])
+        out = np.empty((len(rel), 3))
+        out[:, 0] = rel[:, 0] + c * tx - s * ty
+        out[:, 1] = rel[:, 1] + s * tx + c * ty
+        out[:, 2] = tz
+        return out
 
     def use_priors(self, priors: RangePriors | None) -> None:
         """The learned NLOS classifier's per-range priors (None: the mixture's own)."""
@@ -817,7 +821,9 @@ class GraphBuilder:
         # the wheel track's motion from t_a to t_b and to the ranges' stamps, one query
         # (`WheelTrack.between`, `_wheel_tag`)
         rel = None
-        if self.has_wheel:
+        if self.has_wheel and len(ranges[0]) < FEW_QUERIES:
+            rel = self.wheel.between_few(t_a, [t_b, *ranges[0].tolist()])
+        elif self.has_wheel:
             track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
             rel = se2_between(track[:1], track[1:])
         if self.has_imu:

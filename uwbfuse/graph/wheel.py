@@ -17,6 +17,7 @@ import numpy as np
 
 from uwbfuse.graph.noise import gaussian_covariances
 from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
+    FEW_QUERIES,
     WheelTrack,
     _arcs,
     se2_between,

@@ -112,6 +112,8 @@ def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # samples per `WheelTrack.add` integrated in Python floats (online a batch holds the few
 # samples of one output epoch; numpy's per-call cost is then ~10x the arithmetic)
 FEW_SAMPLES = 8
+# query times below which `WheelTrack.between_few` (Python floats) beats the array pass
+FEW_QUERIES = 16
 
 
 def _integrate(start: np.ndarray, v: np.ndarray, w: np.ndarray, tau: np.ndarray
@@ -256,6 +258,40 @@ class WheelTrack:
         step[:, 0], step[:, 1], step[:, 2] = _arcs(self._v[vel_i], self._w[vel_i], tau)
         out = se2_compose(self._pose[base_i], step)
         return out if np.ndim(t_ns) else out[0]
+
+    def between_few(self, t_a: int, t_b: list[int]) -> np.ndarray:
+        """`between(t_a, t_b)` (n, 3) for a few times t_b ns (one keyframe's: its end and
+        its ranges' stamps) in Python floats: `at` and `se2_between` operation for operation
+        (bit-identical, tests/test_wheel_track.py); numpy's per-call cost was ~10x the
+        arithmetic there."""
+        (xa, ya, tha), *rest = self._at_few([t_a, *t_b])
+        c, s = math.cos(tha), math.sin(tha)
+        out = []
+        for xb, yb, thb in rest:
+            dx, dy = xb - xa, yb - ya
+            out.append((c * dx + s * dy, -s * dx + c * dy,
+                        float(np.arctan2(math.sin(thb - tha), math.cos(thb - tha)))))
+        return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+    def _at_few(self, t_ns: list[int]) -> list[tuple[float, float, float]]:
+        """`at` of a few times (ns) in Python floats (`between_few`)."""
+        n = self._n
+        if n == 0:
+            return [(0.0, 0.0, 0.0)] * len(t_ns)
+        t = self._t[:n]
+        i = t.searchsorted(t_ns, side="left")  # as in `at`
+        base_i, vel_i = np.maximum(i - 1, 0), np.minimum(i, n - 1)
+        out = []
+        for tq, tb, (x, y, th), v, w in zip(t_ns, t[base_i].tolist(),
+                                            self._pose[base_i].tolist(),
+                                            self._v[vel_i].tolist(), self._w[vel_i].tolist(),
+                                            strict=True):
+            tau = float(tq - tb) / NS_PER_S
+            dth = w * tau
+            dx, dy = arc_step(v, tau, 0.0, dth)
+            c, s = math.cos(th), math.sin(th)
+            out.append((x + c * dx - s * dy, y + s * dx + c * dy, th + dth))
+        return out
 
     def between(self, t_a: np.ndarray | int, t_b: np.ndarray | int) -> np.ndarray:
         """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a
