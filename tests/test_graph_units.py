@@ -342,3 +342,28 @@ def test_classifier_weight_follows_how_well_the_classifier_predicts_the_residual
     chance = rng.normal(0.0, 1.5, nlos.size)
     assert classifier_weight(g, chance) < 0.05
     assert classifier_weight(g, -informative) == 0.0
+
+
+def test_median_ring_equals_np_median_of_the_ring():
+    """Test that the sorted ring of the online robust sigma (`builder.MedianRing`) gives
+    np.median of its finite values exactly, before and after it fills, with ties, NaN and
+    infinite values and batches longer than the ring."""
+    from uwbfuse.graph.builder import MedianRing
+
+    rng = np.random.default_rng(17)
+    size = 37
+    ring, ref = MedianRing(size), np.full(size, np.nan)
+    i = 0
+    assert ring.median() is None
+    for _ in range(400):
+        x = np.abs(rng.normal(0.0, 0.2, rng.integers(0, 9 if rng.random() < 0.95 else 90)))
+        x[rng.random(len(x)) < 0.05] = np.nan
+        x[rng.random(len(x)) < 0.02] = np.inf
+        x[rng.random(len(x)) < 0.1] = 0.125  # ties
+        ring.add(x.tolist())
+        for v in x:
+            ref[i] = v
+            i = (i + 1) % size
+        seen = ref[np.isfinite(ref)]
+        if len(seen):
+            assert ring.median() == float(np.median(seen))

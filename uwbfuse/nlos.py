@@ -309,27 +309,28 @@ def hmm_filter(
     p_nlos; `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs each transition by the
     change of residual it implies.
     """
-    out = np.empty(len(ll_los))
-    priors = np.empty(len(ll_los))
+    out, priors = [], []
     p = p0
-    d = np.clip(ll_nlos - ll_los, -50.0, 50.0)
+    # Python floats in the loop (numpy item access was most of its time; the same values)
+    d = np.minimum(np.maximum(ll_nlos - ll_los, -50.0), 50.0).tolist()  # np.clip's
     t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
     t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
-    jl = None if jump_ll is None else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    jl = (None if jump_ll is None
+          else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True)).tolist())
     for i in range(len(d)):
         if jl is None:
             prior = (1.0 - p_switch) * p + p_switch * p_nlos
         else:
-            j = jl[i]
-            to_n = (1.0 - p) * t_ln * j[0, 1] + p * (1.0 - t_nl) * j[1, 1]
-            to_l = (1.0 - p) * (1.0 - t_ln) * j[0, 0] + p * t_nl * j[1, 0]
+            (j00, j01), (j10, j11) = jl[i]
+            to_n = (1.0 - p) * t_ln * j01 + p * (1.0 - t_nl) * j11
+            to_l = (1.0 - p) * (1.0 - t_ln) * j00 + p * t_nl * j10
             prior = to_n / max(to_n + to_l, 1e-300)
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
-        priors[i] = prior
+        priors.append(prior)
         lo = math.log(prior / (1.0 - prior)) + d[i]
         p = 1.0 / (1.0 + math.exp(-lo))
-        out[i] = p
-    return out, p, priors
+        out.append(p)
+    return np.array(out, dtype=np.float64), p, np.array(priors, dtype=np.float64)
 
 
 def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
@@ -361,20 +362,20 @@ def hmm_smooth(
         tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
     t00, t01 = tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist()
     t10, t11 = tr[:, 1, 0].tolist(), tr[:, 1, 1].tolist()
-    alpha = np.empty((n, 2))
     q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
     cur = np.array([1.0 - q0, q0]) * e[0]
-    alpha[0] = cur / cur.sum()
+    x0, x1 = (cur / cur.sum()).tolist()
     e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
-    x0, x1 = float(alpha[0, 0]), float(alpha[0, 1])
+    # the forward messages in Python lists (numpy item access was most of the loops' time)
+    alpha0, alpha1 = [x0] * n, [x1] * n
     for i in range(1, n):
         y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
         y1 = (x0 * t01[i] + x1 * t11[i]) * e1[i]
         s = max(y0 + y1, 1e-300)
         x0, x1 = y0 / s, y1 / s
-        alpha[i, 0], alpha[i, 1] = x0, x1
-    post = np.empty(n)
-    post[-1] = alpha[-1, 1]
+        alpha0[i], alpha1[i] = x0, x1
+    post = [0.0] * n
+    post[-1] = alpha1[-1]
     b0, b1 = 1.0, 1.0
     for i in range(n - 2, -1, -1):
         c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
@@ -382,6 +383,6 @@ def hmm_smooth(
         nb0, nb1 = t00[j] * c0 + t01[j] * c1, t10[j] * c0 + t11[j] * c1
         s = max(nb0 + nb1, 1e-300)
         b0, b1 = nb0 / s, nb1 / s
-        g0, g1 = alpha[i, 0] * b0, alpha[i, 1] * b1
+        g0, g1 = alpha0[i] * b0, alpha1[i] * b1
         post[i] = g1 / max(g0 + g1, 1e-300)
-    return post
+    return np.array(post, dtype=np.float64)

@@ -17,6 +17,7 @@ iSAM2) and the batch solver (which also keeps every factor: `record=True`).
 
 from __future__ import annotations
 
+import bisect
 import copy
 import logging
 import math
@@ -54,6 +55,7 @@ from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import huber_log_density, los_bias_key, nlos_state_factors, range_factor
 from uwbfuse.graph.wheel import (
+    FEW_QUERIES,
     WheelTrack,
     between_factor,
     between_factors,
@@ -250,6 +252,37 @@ class ResidualWindow:
 
 
 
+class MedianRing:
+    """The last `size` values (NaN: none yet) and the median of the finite ones, kept in
+    sorted order as they come and go (bisect): np.median's partition of the whole ring
+    per keyframe was a third of the online range-model scoring. The same value as
+    np.median (the same order statistics; of two, their sum halved)."""
+
+    def __init__(self, size: int) -> None:
+        self._ring = [math.nan] * size
+        self._i = 0
+        self._sorted: list[float] = []
+
+    def add(self, values: list[float]) -> None:
+        """Values in order; each replaces the oldest once the ring is full."""
+        for x in values:
+            old = self._ring[self._i]
+            if math.isfinite(old):
+                del self._sorted[bisect.bisect_left(self._sorted, old)]
+            if math.isfinite(x):
+                bisect.insort(self._sorted, x)
+            self._ring[self._i] = x
+            self._i = (self._i + 1) % len(self._ring)
+
+    def median(self) -> float | None:
+        """Median of the finite values held, None without any."""
+        v = self._sorted
+        h = len(v) // 2
+        if not v:
+            return None
+        return v[h] if len(v) % 2 else (v[h - 1] + v[h]) / 2
+
+
 def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> float | None:
     """LOS sigma (m) from the MAD of LOS residuals `r` (m; responsibility g < 0.5, |r| < 1 m),
     the prior counting as n0 ranges; within [SIGMA_LOS_MIN, prior]."""
@@ -261,6 +294,9 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
     mad = NORMAL_MAD_SCALE * float(np.median(np.abs(r - np.median(r))))
     s = math.sqrt((len(r) * mad**2 + n0 * prior**2) / (len(r) + n0))
     return min(max(s, SIGMA_LOS_MIN), prior)
+
+
+_ROT_IDENTITY = gtsam.Rot3()  # the range factors' tag offset is a pure translation
 
 
 class GraphBuilder:
@@ -300,6 +336,7 @@ class GraphBuilder:
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
         self.z0 = planar_height(anchors, float(start.position[2]))
+        self._planar_noise: gtsam.noiseModel.Diagonal | None = None  # `_planar_prior`'s
         self._init_nlos_state()
         # the IMU noise inflation of the factors built from now on (`set_imu_inflation`).
         # `auto` with ranges starts as loose as the noise fit may go (a tight IMU factor
@@ -477,8 +514,7 @@ class GraphBuilder:
         # early evidence, the graph lost more where the mixture later proved right (factory)
         # than it gained where it did not (Plaza)
         self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
-        self._abs_r = np.full(PREQUENTIAL_WINDOW, np.nan)  # |one-step residual| ring (m)
-        self._abs_i = 0
+        self._abs_r = MedianRing(PREQUENTIAL_WINDOW)  # |one-step residual| ring (m)
         self._robust_sigma: float | None = None  # cached robust_sigma() of the ring
 
     # ---------------------------------------------------------------- data
@@ -586,11 +622,19 @@ class GraphBuilder:
     def _wheel_tag(self, t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b (N,) in the base frame at t_a ((N,) or
         (1,) for all) by the wheel track (metres)."""
-        rel = se2_between(self.wheel.at(t_a), self.wheel.at(np.asarray(t_b, np.int64)))
+        return self._tag_from(se2_between(self.wheel.at(t_a),
+                                          self.wheel.at(np.asarray(t_b, np.int64))))
+
+    def _tag_from(self, rel: np.ndarray) -> np.ndarray:
+        """Tag antenna positions (N,3) in the base frame at t_a from the wheel track's
+        motion rel (N,3) (x m, y m, theta rad) from t_a to each range's time."""
         c, s = np.cos(rel[:, 2]), np.sin(rel[:, 2])
         tx, ty, tz = self.tag
-        return np.column_stack([rel[:, 0] + c * tx - s * ty, rel[:, 1] + s * tx + c * ty,
-                                np.full(len(rel), tz)])
+        out = np.empty((len(rel), 3))
+        out[:, 0] = rel[:, 0] + c * tx - s * ty
+        out[:, 1] = rel[:, 1] + s * tx + c * ty
+        out[:, 2] = tz
+        return out
 
     def use_priors(self, priors: RangePriors | None) -> None:
         """The learned NLOS classifier's per-range priors (None: the mixture's own)."""
@@ -643,10 +687,12 @@ class GraphBuilder:
         ypr = pose.rotation().ypr()
         mean = gtsam.Pose3(gtsam.Rot3.Ypr(float(ypr[0]), 0.0, 0.0),
                            np.array([pose.x(), pose.y(), self.z0]))
-        big = 1e3
-        s = pose_sigmas((self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big),
-                        (big, big, self.g.planar_sigma_z))
-        return gtsam.PriorFactorPose3(X(k), mean, diagonal(s))
+        if self._planar_noise is None:  # the config's: one (immutable) model for every prior
+            big = 1e3
+            self._planar_noise = diagonal(pose_sigmas(
+                (self.g.planar_sigma_tilt, self.g.planar_sigma_tilt, big),
+                (big, big, self.g.planar_sigma_z)))
+        return gtsam.PriorFactorPose3(X(k), mean, self._planar_noise)
 
     def first(self) -> Increment:
         """Keyframe 0: priors from the initial state, anchors and range biases."""
@@ -771,6 +817,15 @@ class GraphBuilder:
         pieces = None
         new_pose = pose_a
         new_vel = vel_a
+        ranges = self._take_ranges(t_b)
+        # the wheel track's motion from t_a to t_b and to the ranges' stamps, one query
+        # (`WheelTrack.between`, `_wheel_tag`)
+        rel = None
+        if self.has_wheel and len(ranges[0]) < FEW_QUERIES:
+            rel = self.wheel.between_few(t_a, [t_b, *ranges[0].tolist()])
+        elif self.has_wheel:
+            track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
+            rel = se2_between(track[:1], track[1:])
         if self.has_imu:
             gy, ac, dts = self.imu.pieces(t_a, t_b)
             if len(dts) == 0:
@@ -789,8 +844,8 @@ class GraphBuilder:
             inc.values.insert(B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
-        if self.has_wheel:
-            d = self.wheel.between(t_a, t_b)
+        if rel is not None:
+            d = rel[0]
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
@@ -829,7 +884,8 @@ class GraphBuilder:
                     self.pose_index.append(self.full_graph.size() + inc.graph.size())
                 inc.graph.add(f)
         self._record(inc)  # batch keeps the non-range factors; ranges are rebuilt by EM
-        self._add_ranges(inc, ka, t_a, t_b, pose_a, vel_a)
+        self._add_ranges(inc, ka, t_a, pose_a, vel_a, ranges,
+                         None if rel is None or not len(self.wheel) else rel[1:])
         self._stamp_globals(inc, self.stamp(k))
         self.k = k
         self.pose, self.vel = new_pose, new_vel
@@ -875,9 +931,12 @@ class GraphBuilder:
                 rec.tag_in_kf[j] = tag
 
     def _add_ranges(
-        self, inc: Increment, ka: int, t_a: int, t_b: int, pose_a: gtsam.Pose3, vel_a: np.ndarray
+        self, inc: Increment, ka: int, t_a: int, pose_a: gtsam.Pose3, vel_a: np.ndarray,
+        ranges: tuple[np.ndarray, ...], wheel_rel: np.ndarray | None,
     ) -> None:
-        t, a, z_raw, q = self._take_ranges(t_b)
+        """The keyframe's `ranges` (`_take_ranges`) as factors; `wheel_rel`: the wheel
+        track's motion (N,3) from t_a to each range (None: `tag_in_keyframe`)."""
+        t, a, z_raw, q = ranges
         # the learned classifier's evidence (nats) adds to each range's NLOS log-likelihood:
         # with it the range's prior odds of NLOS are the classifier's
         evidence = (self.priors.log_odds(q) if self.priors is not None
@@ -885,7 +944,8 @@ class GraphBuilder:
         if len(t) == 0:
             return
         z = z_raw / (1.0 + self.scale[a]) if self.with_scale else z_raw
-        tag_kf = self.tag_in_keyframe(t_a, t, pose_a, vel_a)
+        tag_kf = (self.tag_in_keyframe(t_a, t, pose_a, vel_a) if wheel_rel is None
+                  else self._tag_from(wheel_rel))
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
@@ -959,7 +1019,7 @@ class GraphBuilder:
         """Add one range's LOS and NLOS factors (weights 1-g, g); return their positions."""
         mix = self.mixture
         uwb = self.cfg.uwb
-        t_tag = gtsam.Pose3(gtsam.Rot3(), tag_kf)
+        t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf)
         if self.robust_online:
             sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
@@ -968,12 +1028,13 @@ class GraphBuilder:
         w_l = 1.0 - g
         if w_l > MIN_WEIGHT:
             out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, sig_l / np.sqrt(w_l), t_tag, uwb,
+            inc.graph.add(range_factor(ka, a, z, sig_l / math.sqrt(w_l), t_tag, uwb,
                                        los_bias_key(a, self.with_bias)))
         if g > MIN_WEIGHT:
             key = self._nlos_state(inc, a, seg, e_guess)
             out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / np.sqrt(g), t_tag, uwb, key))
+            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / math.sqrt(g), t_tag, uwb,
+                                       key))
         return out
 
     def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:
@@ -1053,9 +1114,9 @@ class GraphBuilder:
         """LOS sigma (m) of the robust model: 1.4826 x the median |one-step residual| (one
         median per batch of new residuals, not per range)."""
         if self._robust_sigma is None:
-            seen = self._abs_r[np.isfinite(self._abs_r)]
-            self._robust_sigma = self.cfg.uwb.sigma if len(seen) == 0 else float(
-                np.clip(NORMAL_MAD_SCALE * np.median(seen), SIGMA_LOS_MIN, 1.0))
+            med = self._abs_r.median()
+            self._robust_sigma = self.cfg.uwb.sigma if med is None else min(
+                max(NORMAL_MAD_SCALE * med, SIGMA_LOS_MIN), 1.0)
         return self._robust_sigma
 
     def prequential_verdict(self) -> str | None:
@@ -1092,7 +1153,6 @@ class GraphBuilder:
         if self.g.range_model == "mixture":
             return
         n = len(r_los)
-        idx = (self._abs_i + np.arange(n)) % PREQUENTIAL_WINDOW
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
             p = np.clip(prior, 1e-3, 1.0 - 1e-3)
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
@@ -1103,8 +1163,7 @@ class GraphBuilder:
             self._pq_n += n
             self._pq_sum += float(np.sum(d))
             self._pq_sum2 += float(np.sum(d * d))
-        self._abs_r[idx] = np.abs(r_los)
-        self._abs_i = int((self._abs_i + n) % PREQUENTIAL_WINDOW)
+        self._abs_r.add(np.abs(r_los).tolist())
         self._robust_sigma = None  # the ring moved
         self.prequential_n += n
 

@@ -9,6 +9,7 @@ The body frame of the factors is the base frame; `imu_in_base` is GTSAM's body_P
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 
 import gtsam
@@ -220,7 +221,7 @@ class ImuRecords:
 
     def drop_before(self, k: int) -> None:
         """Forget the factors whose first keyframe is before `k`."""
-        n = int(np.searchsorted(self.k, k))
+        n = bisect.bisect_left(self.k, k)  # `k` is ascending (np.searchsorted's left side)
         for kk in self.k[:n]:
             self.parts.pop(kk, None)
         del self.k[:n], self.index[:n], self.bias[:n], self.pieces[:n]

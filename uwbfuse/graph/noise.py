@@ -7,6 +7,8 @@ range sigmas in metres, rotation sigmas in radians, translation sigmas in metres
 
 from __future__ import annotations
 
+import functools
+
 import gtsam
 import numpy as np
 
@@ -15,8 +17,11 @@ from uwbfuse.config import RobustKernel
 _M = gtsam.noiseModel.mEstimator
 
 
+@functools.cache
 def robust_estimator(kernel: RobustKernel, threshold: float) -> gtsam.noiseModel.mEstimator.Base:
-    """The m-estimator for `kernel` with `threshold` in sigmas (whitened units)."""
+    """The m-estimator for `kernel` with `threshold` in sigmas (whitened units); one per
+    (kernel, threshold), shared by the factors (an m-estimator is stateless: every range
+    factor built its own)."""
     if kernel is RobustKernel.HUBER:
         return _M.Huber.Create(threshold)
     if kernel is RobustKernel.CAUCHY:

@@ -17,6 +17,7 @@ import numpy as np
 
 from uwbfuse.graph.noise import gaussian_covariances
 from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
+    FEW_QUERIES,
     WheelTrack,
     _arcs,
     se2_between,
@@ -71,14 +72,19 @@ def between_factors(
     # wheel slip: a disagreeing interval (IMU, ranges) loses weight instead of dragging the
     # trajectory (one stateless kernel shared by the factors)
     huber = None if robust_k is None else gtsam.noiseModel.mEstimator.Huber.Create(robust_k)
-    out = []
-    for ka, kb, d, c in zip(np.asarray(key_a).tolist(), np.asarray(key_b).tolist(),
-                            np.asarray(delta).reshape(-1, 3), cov6, strict=True):
-        noise = gtsam.noiseModel.Gaussian.Covariance(c)
-        if huber is not None:
-            noise = gtsam.noiseModel.Robust.Create(huber, noise)
-        out.append(gtsam.BetweenFactorPose3(ka, kb, se2_to_pose3(d), noise))
-    return out
+    return [_between(ka, kb, d, c, huber)
+            for ka, kb, d, c in zip(np.asarray(key_a).tolist(), np.asarray(key_b).tolist(),
+                                    np.asarray(delta).reshape(-1, 3), cov6, strict=True)]
+
+
+def _between(key_a: int, key_b: int, delta: np.ndarray, cov6: np.ndarray,
+             huber: gtsam.noiseModel.mEstimator.Base | None) -> gtsam.BetweenFactorPose3:
+    """The native factor of `between_factors` from a planar delta (3,) and its ready 6x6
+    covariance."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(cov6)
+    if huber is not None:
+        noise = gtsam.noiseModel.Robust.Create(huber, noise)
+    return gtsam.BetweenFactorPose3(key_a, key_b, se2_to_pose3(delta), noise)
 
 
 def between_factor(
@@ -89,6 +95,8 @@ def between_factor(
     out_of_plane_sigmas: tuple[float, float, float],
     robust_k: float | None = None,
 ) -> gtsam.BetweenFactorPose3:
-    """One `between_factors` factor (a planar delta (3,) with covariance (3,3))."""
-    return between_factors([key_a], [key_b], delta, cov_xyt, out_of_plane_sigmas,
-                           robust_k)[0]
+    """One `between_factors` factor (a planar delta (3,) with covariance (3,3)), without
+    its array passes (one per keyframe online; the same numbers)."""
+    huber = None if robust_k is None else gtsam.noiseModel.mEstimator.Huber.Create(robust_k)
+    cov6 = gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))
+    return _between(key_a, key_b, np.asarray(delta).reshape(3), cov6, huber)

@@ -9,6 +9,7 @@ the relative motion between any two times is one SE(2) composition.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -32,6 +33,19 @@ def arc_steps(v: np.ndarray, dt: np.ndarray, yaw0: np.ndarray | float,
     lx = np.where(small, s * (1.0 - dyaw * dyaw / 6.0), s * np.sin(th_safe) / th_safe)
     ly = np.where(small, s * dyaw / 2.0, s * (1.0 - np.cos(th_safe)) / th_safe)
     c, sn = np.cos(yaw0), np.sin(yaw0)
+    return c * lx - sn * ly, sn * lx + c * ly
+
+
+def arc_step(v: float, dt: float, yaw0: float, dyaw: float) -> tuple[float, float]:
+    """`arc_steps` for one arc in Python floats (the same formula, operation for operation:
+    bit-identical, tests/test_graph_units.py): the per-keyframe paths, where numpy's per-call
+    cost is ~10x the arithmetic."""
+    s = v * dt
+    if abs(dyaw) < 1e-6:  # rad, as in `arc_steps`
+        lx, ly = s * (1.0 - dyaw * dyaw / 6.0), s * dyaw / 2.0
+    else:
+        lx, ly = s * math.sin(dyaw) / dyaw, s * (1.0 - math.cos(dyaw)) / dyaw
+    c, sn = math.cos(yaw0), math.sin(yaw0)
     return c * lx - sn * ly, sn * lx + c * ly
 
 
@@ -67,21 +81,74 @@ def unicycle_track(
     return xb, yb, yaw_b, yaw_b[:, :-1] + 0.5 * dth[None, :]
 
 
+def _se2_out(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The (..., 3) result array of a broadcast SE(2) operation on a and b (filled column by
+    column: np.stack's per-call cost was a third of these functions on keyframe-sized input)."""
+    sa, sb = np.shape(a)[:-1], np.shape(b)[:-1]
+    return np.empty((*(sa if sa == sb else np.broadcast_shapes(sa, sb)), 3))
+
+
 def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a (+) b for SE(2) poses (x, y, theta), broadcasting over leading axes."""
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack(
-        [a[..., 0] + c * b[..., 0] - s * b[..., 1],
-         a[..., 1] + s * b[..., 0] + c * b[..., 1],
-         a[..., 2] + b[..., 2]], axis=-1)
+    out = _se2_out(a, b)
+    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 2] = a[..., 2] + b[..., 2]
+    return out
 
 
 def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a^-1 (+) b for SE(2) poses (x, y, theta)."""
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
-    dth = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
-    return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
+    out = _se2_out(a, b)
+    out[..., 0] = c * dx + s * dy
+    out[..., 1] = -s * dx + c * dy
+    out[..., 2] = np.arctan2(np.sin(b[..., 2] - a[..., 2]), np.cos(b[..., 2] - a[..., 2]))
+    return out
+
+
+# samples per `WheelTrack.add` integrated in Python floats (online a batch holds the few
+# samples of one output epoch; numpy's per-call cost is then ~10x the arithmetic)
+FEW_SAMPLES = 8
+# query times below which `WheelTrack.between_few` (Python floats) beats the array pass
+FEW_QUERIES = 16
+
+
+def _integrate(start: np.ndarray, v: np.ndarray, w: np.ndarray, tau: np.ndarray
+               ) -> np.ndarray:
+    """Track poses (m, 3) after each of m arcs (v m/s, w rad/s for tau s) from `start`
+    (x m, y m, theta rad): the arcs turned into the start frame and summed cumulatively."""
+    dx, dy, dth = _arcs(v, w, tau)
+    th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
+    c, s = np.cos(th_prev), np.sin(th_prev)
+    gx, gy = c * dx - s * dy, s * dx + c * dy
+    out = np.empty((len(tau), 3))
+    out[:, 0] = start[0] + np.cumsum(gx)
+    out[:, 1] = start[1] + np.cumsum(gy)
+    out[:, 2] = start[2] + np.cumsum(dth)
+    return out
+
+
+def _integrate_few(start: np.ndarray, v: np.ndarray, w: np.ndarray, tau: np.ndarray
+                   ) -> np.ndarray:
+    """`_integrate` in Python floats, the same operations in the same order (`arc_step`;
+    the running sums as np.cumsum adds them): bit-identical, tests/test_wheel_track.py."""
+    x0, y0, th0 = start.tolist()
+    out = []
+    cx = cy = cth = None  # the running sums (np.cumsum starts from the first term itself)
+    for vi, wi, ti in zip(v.tolist(), w.tolist(), tau.tolist(), strict=True):
+        th_prev = th0 + (0.0 if cth is None else cth)
+        dth = wi * ti
+        dx, dy = arc_step(vi, ti, 0.0, dth)
+        c, s = math.cos(th_prev), math.sin(th_prev)
+        gx, gy = c * dx - s * dy, s * dx + c * dy
+        cx = gx if cx is None else cx + gx
+        cy = gy if cy is None else cy + gy
+        cth = dth if cth is None else cth + dth
+        out.append((x0 + cx, y0 + cy, th0 + cth))
+    return np.array(out, dtype=np.float64).reshape(-1, 3)
 
 
 class WheelTrack:
@@ -152,13 +219,8 @@ class WheelTrack:
             prev_t = np.concatenate([[t_ns[0]], t_ns[:-1]])
             start = np.zeros(3)
         tau = (t_ns - prev_t).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(v, omega, tau)
-        th_prev = start[2] + np.concatenate([[0.0], np.cumsum(dth)[:-1]])
-        c, s = np.cos(th_prev), np.sin(th_prev)
-        gx, gy = c * dx - s * dy, s * dx + c * dy
-        poses = np.stack([start[0] + np.cumsum(gx), start[1] + np.cumsum(gy),
-                          start[2] + np.cumsum(dth)], axis=-1)
         m = len(t_ns)
+        poses = (_integrate_few if m <= FEW_SAMPLES else _integrate)(start, v, omega, tau)
         self._reserve(m)
         sl = slice(self._n, self._n + m)
         self._t[sl], self._v[sl], self._w[sl], self._pose[sl] = t_ns, v, omega, poses
@@ -192,9 +254,44 @@ class WheelTrack:
         base_i = np.maximum(i - 1, 0)
         vel_i = np.minimum(i, n - 1)
         tau = (tq - t[base_i]).astype(np.float64) / NS_PER_S
-        dx, dy, dth = _arcs(self._v[vel_i], self._w[vel_i], tau)
-        out = se2_compose(self._pose[base_i], np.stack([dx, dy, dth], axis=-1))
+        step = np.empty((len(tq), 3))
+        step[:, 0], step[:, 1], step[:, 2] = _arcs(self._v[vel_i], self._w[vel_i], tau)
+        out = se2_compose(self._pose[base_i], step)
         return out if np.ndim(t_ns) else out[0]
+
+    def between_few(self, t_a: int, t_b: list[int]) -> np.ndarray:
+        """`between(t_a, t_b)` (n, 3) for a few times t_b ns (one keyframe's: its end and
+        its ranges' stamps) in Python floats: `at` and `se2_between` operation for operation
+        (bit-identical, tests/test_wheel_track.py); numpy's per-call cost was ~10x the
+        arithmetic there."""
+        (xa, ya, tha), *rest = self._at_few([t_a, *t_b])
+        c, s = math.cos(tha), math.sin(tha)
+        out = []
+        for xb, yb, thb in rest:
+            dx, dy = xb - xa, yb - ya
+            out.append((c * dx + s * dy, -s * dx + c * dy,
+                        float(np.arctan2(math.sin(thb - tha), math.cos(thb - tha)))))
+        return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+    def _at_few(self, t_ns: list[int]) -> list[tuple[float, float, float]]:
+        """`at` of a few times (ns) in Python floats (`between_few`)."""
+        n = self._n
+        if n == 0:
+            return [(0.0, 0.0, 0.0)] * len(t_ns)
+        t = self._t[:n]
+        i = t.searchsorted(t_ns, side="left")  # as in `at`
+        base_i, vel_i = np.maximum(i - 1, 0), np.minimum(i, n - 1)
+        out = []
+        for tq, tb, (x, y, th), v, w in zip(t_ns, t[base_i].tolist(),
+                                            self._pose[base_i].tolist(),
+                                            self._v[vel_i].tolist(), self._w[vel_i].tolist(),
+                                            strict=True):
+            tau = float(tq - tb) / NS_PER_S
+            dth = w * tau
+            dx, dy = arc_step(v, tau, 0.0, dth)
+            c, s = math.cos(th), math.sin(th)
+            out.append((x + c * dx - s * dy, y + s * dx + c * dy, th + dth))
+        return out
 
     def between(self, t_a: np.ndarray | int, t_b: np.ndarray | int) -> np.ndarray:
         """Relative planar motion (x, y, theta) from time t_a to t_b, in the base frame at t_a
@@ -205,7 +302,9 @@ class WheelTrack:
                    cfg: WheelConfig) -> np.ndarray:
         """3x3 covariance of `between(t_a, t_b)` in (x, y, theta), from per-sample noise
         (scalars, or arrays of ns: (n, 3, 3), one per pair)."""
-        scalar = np.ndim(t_a) == 0 and np.ndim(t_b) == 0
+        q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
+        if np.ndim(t_a) == 0 and np.ndim(t_b) == 0:
+            return self._covariance_one(int(t_a), int(t_b), q)
         ta = np.atleast_1d(np.asarray(t_a, np.int64))
         tb = np.atleast_1d(np.asarray(t_b, np.int64))
         out = np.zeros((len(ta), 3, 3))
@@ -213,27 +312,30 @@ class WheelTrack:
         out[still] = np.diag([1e-6, 1e-6, 1e-6])
         go = np.flatnonzero(~still)
         if len(go) == 0:
-            return out[0] if scalar else out
+            return out
+        # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side
         dx, dy, dth, tau = self._pieces(ta[go], tb[go])
-        q = (cfg.sigma_v**2, cfg.sigma_lateral**2, cfg.sigma_omega**2)
-        # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side; one
-        # pair in Python floats (one keyframe interval online: a few pieces, where numpy's
-        # per-call cost is ~10x the arithmetic)
-        if scalar:
-            st: tuple = (0.0,) * 7
-            for piece in zip(dx[0].tolist(), dy[0].tolist(), dth[0].tolist(), tau[0].tolist(),
-                             strict=True):
-                st = _propagate_piece(st, *piece, q, math.cos, math.sin)
-        else:
-            st = (np.zeros(len(go)),) * 7
-            for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
-                new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
-                                       np.cos, np.sin)
-                st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
+        st = (np.zeros(len(go)),) * 7
+        for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
+            new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
+                                   np.cos, np.sin)
+            st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
         p00, p01, p02, p11, p12, p22, _ = st
         out[go] = np.moveaxis(np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]]),
                               -1, 0)
-        return out[0] if scalar else out
+        return out
+
+    def _covariance_one(self, t_a: int, t_b: int, q: tuple[float, float, float]) -> np.ndarray:
+        """`covariance` of one pair in Python floats (one keyframe interval online: a few
+        pieces, where numpy's per-call cost is ~10x the arithmetic; equal to the pairs'
+        pass, tests/test_wheel_track.py)."""
+        if t_b <= t_a or self._n == 0:
+            return np.diag([1e-6, 1e-6, 1e-6])
+        st: tuple = (0.0,) * 7
+        for piece in self._pieces_one(t_a, t_b):
+            st = _propagate_piece(st, *piece, q, math.cos, math.sin)
+        p00, p01, p02, p11, p12, p22, _ = st
+        return np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
 
     def _pieces(self, t_a: np.ndarray, t_b: np.ndarray) -> tuple[np.ndarray, ...]:
         """Local (dx, dy, dtheta) arcs and durations tau s (n, m) of the constant-velocity
@@ -253,6 +355,27 @@ class WheelTrack:
         tau = np.diff(edges, axis=1).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
         return dx, dy, dth, tau
+
+
+    def _pieces_one(self, t_a: int, t_b: int) -> list[tuple[float, float, float, float]]:
+        """`_pieces` of one interval t_a < t_b ns in Python floats, without the padding:
+        (dx, dy, dtheta, tau) per piece, by `arc_step` (bit-identical, tested)."""
+        n = self._n
+        t = self._t[:n]
+        i0 = int(t.searchsorted(t_a, side="right"))
+        i1 = int(t.searchsorted(t_b, side="left"))
+        edges = [t_a, *t[i0:i1].tolist(), t_b]
+        pairs = list(itertools.pairwise(edges))
+        idx = [min(i, n - 1) for i in  # >= 0
+               t.searchsorted([(e0 + e1) // 2 for e0, e1 in pairs], side="left").tolist()]
+        out = []
+        for (e0, e1), v, w in zip(pairs, self._v[idx].tolist(), self._w[idx].tolist(),
+                                  strict=True):
+            tau = float(e1 - e0) / NS_PER_S
+            th = w * tau
+            dx, dy = arc_step(v, tau, 0.0, th)
+            out.append((dx, dy, th, tau))
+        return out
 
 
 def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,

@@ -1,0 +1,100 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The wheel track's scalar fast paths against its vectorised ones, bit for bit (GTSAM-free)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from uwbfuse.config import WheelConfig
+from uwbfuse.positioning.wheel_track import WheelTrack, arc_step, arc_steps
+
+NS = 1_000_000_000
+
+
+def _bits(x: np.ndarray) -> np.ndarray:
+    return np.asarray(x, np.float64).view(np.int64)  # signed zeros count too
+
+
+def test_arc_step_equals_arc_steps_bit_for_bit():
+    """Test that the scalar arc (Python floats) gives exactly `arc_steps`' numbers on random
+    arcs: turning, straight (|dyaw| below the series threshold, zero, negative zero),
+    backwards and at any start heading."""
+    rng = np.random.default_rng(11)
+    n = 5000
+    v = rng.normal(0.5, 1.0, n)
+    dt = rng.uniform(0.0, 0.2, n)
+    yaw0 = rng.uniform(-10.0, 10.0, n)
+    dyaw = rng.normal(0.0, 0.3, n)
+    dyaw[::5] = rng.uniform(-2e-6, 2e-6, len(dyaw[::5]))  # both sides of the 1e-6 rad switch
+    dyaw[1::50], dyaw[2::50], yaw0[3::50], v[4::50] = 0.0, -0.0, 0.0, 0.0
+    dx, dy = arc_steps(v, dt, yaw0, dyaw)
+    one = np.array([arc_step(*a) for a in zip(v.tolist(), dt.tolist(), yaw0.tolist(),
+                                               dyaw.tolist(), strict=True)])
+    assert np.array_equal(_bits(one[:, 0]), _bits(dx))
+    assert np.array_equal(_bits(one[:, 1]), _bits(dy))
+
+
+def test_one_pair_covariance_equals_the_vectorised_one():
+    """Test that `covariance` of one pair (the scalar pieces, `_pieces_one`) equals the
+    vectorised pass over many pairs exactly, on random tracks with straight samples, pairs
+    starting on a sample and pairs past the track's ends."""
+    rng = np.random.default_rng(12)
+    t = np.cumsum(rng.integers(1, 60_000_000, 400)) + NS
+    v, w = rng.normal(0.8, 0.6, 400), rng.normal(0.0, 0.6, 400)
+    w[::4] = 0.0
+    track = WheelTrack()
+    track.add(t, v, w)
+    ta = rng.integers(int(t[0]) - NS, int(t[-1]) + NS, 300)
+    ta[:30] = t[rng.integers(0, 400, 30)]
+    tb = ta + rng.integers(1, 500_000_000, 300)
+    cfg = WheelConfig(sigma_v=0.07, sigma_lateral=0.03, sigma_omega=0.04)
+    cov = track.covariance(ta, tb, cfg)
+    for j in range(len(ta)):
+        assert np.array_equal(cov[j], track.covariance(int(ta[j]), int(tb[j]), cfg))
+    assert np.all(cov[:, 0, 0] > 0)
+
+
+def test_few_samples_integrate_as_the_array_pass():
+    """Test that a batch of up to FEW_SAMPLES samples integrated in Python floats gives the
+    array pass's poses bit for bit (random starts, straight and turning samples, zero
+    intervals), and that a track fed sample by sample equals one fed in large batches to
+    rounding."""
+    from uwbfuse.positioning import wheel_track as wt
+
+    rng = np.random.default_rng(13)
+    for m in range(1, wt.FEW_SAMPLES + 1):
+        for _ in range(200):
+            start = rng.normal(0.0, 5.0, 3)
+            v, w = rng.normal(0.5, 1.0, m), rng.normal(0.0, 0.8, m)
+            w[rng.random(m) < 0.3] = 0.0
+            tau = rng.uniform(0.0, 0.1, m)
+            tau[rng.random(m) < 0.1] = 0.0
+            assert np.array_equal(_bits(wt._integrate_few(start, v, w, tau)),
+                                  _bits(wt._integrate(start, v, w, tau)))
+    t = np.cumsum(rng.integers(5_000_000, 30_000_000, 500)) + NS
+    v, w = rng.normal(0.8, 0.3, 500), rng.normal(0.0, 0.4, 500)
+    one, big = WheelTrack(), WheelTrack()
+    for i in range(0, 500, 3):
+        one.add(t[i:i + 3], v[i:i + 3], w[i:i + 3])
+    big.add(t[:250], v[:250], w[:250])
+    big.add(t[250:], v[250:], w[250:])
+    np.testing.assert_allclose(one.pose, big.pose, rtol=0, atol=1e-9)
+
+
+def test_between_few_equals_between_bit_for_bit():
+    """Test that a keyframe's motions in Python floats (`between_few`) equal `between` over
+    arrays exactly: times before, inside and after the track, on samples, on an empty track."""
+    rng = np.random.default_rng(14)
+    t = np.cumsum(rng.integers(5_000_000, 40_000_000, 300)) + NS
+    v, w = rng.normal(0.8, 0.5, 300), rng.normal(0.0, 0.7, 300)
+    w[::6] = 0.0
+    track = WheelTrack()
+    assert np.array_equal(track.between_few(int(t[0]), [int(t[1])]), np.zeros((1, 3)))
+    track.add(t, v, w)
+    for _ in range(300):
+        t_a = int(rng.integers(int(t[0]) - NS, int(t[-1]) + NS))
+        if rng.random() < 0.2:
+            t_a = int(t[rng.integers(0, 300)])
+        t_b = (t_a + rng.integers(-20_000_000, 300_000_000, rng.integers(1, 17))).tolist()
+        ref = track.between(np.full(len(t_b), t_a, np.int64), np.array(t_b, np.int64))
+        assert np.array_equal(_bits(track.between_few(t_a, t_b)), _bits(ref))
