@@ -159,7 +159,6 @@ def _unscented_update(
     corr = np.zeros(n + m)
     row_ll = 0.0
     c0 = c.copy() if consider is not None else None
-    var = np.asarray(r, float).copy()
     gains: list | None = [] if consider is not None else None
     if m > nr:
         s_all = np.diag(c)[n:]
@@ -173,6 +172,7 @@ def _unscented_update(
         c, corr, keep[:nr], nis = sequential_ranges(
             noise, c, corr, unit[:nr], y[:nr], anchor, z[:nr], evidence, gains)
     if consider is not None and c0 is not None:
+        var = np.asarray(r, float).copy()
         for i, _, v in gains or ():  # the variance each accepted range was weighed at
             var[i] = v
         used = np.flatnonzero(keep)

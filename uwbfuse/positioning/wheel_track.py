@@ -38,7 +38,7 @@ def arc_steps(v: np.ndarray, dt: np.ndarray, yaw0: np.ndarray | float,
 
 def arc_step(v: float, dt: float, yaw0: float, dyaw: float) -> tuple[float, float]:
     """`arc_steps` for one arc in Python floats (the same formula, operation for operation:
-    bit-identical, tests/test_graph_units.py): the per-keyframe paths, where numpy's per-call
+    bit-identical, tests/test_wheel_track.py): the per-keyframe paths, where numpy's per-call
     cost is ~10x the arithmetic."""
     s = v * dt
     if abs(dyaw) < 1e-6:  # rad, as in `arc_steps`
@@ -355,7 +355,6 @@ class WheelTrack:
         tau = np.diff(edges, axis=1).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
         return dx, dy, dth, tau
-
 
     def _pieces_one(self, t_a: int, t_b: int) -> list[tuple[float, float, float, float]]:
         """`_pieces` of one interval t_a < t_b ns in Python floats, without the padding:
