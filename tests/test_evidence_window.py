@@ -21,6 +21,7 @@ gtsam = pytest.importorskip("gtsam")
 from uwbfuse.graph import evidence_window  # noqa: E402
 from uwbfuse.graph.evidence_window import EvidenceWindows, window_mask  # noqa: E402
 from uwbfuse.graph.keys import X  # noqa: E402
+from uwbfuse.graph.offline import run_lm  # noqa: E402
 
 
 def test_a_log_within_the_budget_is_taken_whole():
@@ -71,6 +72,13 @@ def test_the_windowed_graph_keeps_indices_and_starts_each_window_from_a_prior():
     res = gtsam.LevenbergMarquardtOptimizer(out, initial).optimize()
     assert np.allclose(res.atPose3(X(4)).translation(), [4.0, 0.0, 0.0])
     assert np.allclose(res.atPose3(X(7)).translation(), [6.0, 0.0, 0.0], atol=1e-6)
+    # batch's LM carries only the windows' keys and hands the others back unchanged
+    sol = run_lm(out, initial, 30)
+    assert sol.values.size() == initial.size()
+    for k in range(10):
+        assert np.allclose(sol.values.atPose3(X(k)).matrix(), res.atPose3(X(k)).matrix(),
+                           atol=1e-9)
+    assert sol.error == pytest.approx(out.error(res), abs=1e-9)
 
 
 def _prior(k: int, values: gtsam.Values, noise) -> gtsam.NonlinearFactorGraph:

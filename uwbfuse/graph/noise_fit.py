@@ -108,8 +108,8 @@ def noise_log_evidence(
     module docstring)."""
     half_logdet_cov = family.apply(graph, factors)
     opt = run_lm(graph, initial, max_iterations)
-    log.debug("%s noise %s: %d LM iterations", family.name, factors, opt.iterations())
-    values = opt.values()
+    log.debug("%s noise %s: %d LM iterations", family.name, factors, opt.iterations)
+    values = opt.values
     half_logdet_h = graph.linearize(values).eliminateSequential().logDeterminant()
     return -graph.error(values) - half_logdet_cov - half_logdet_h, values
 

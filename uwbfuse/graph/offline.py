@@ -606,17 +606,39 @@ def fitted_excess(fit: BatchResult, train: dict[str, np.ndarray], bias: np.ndarr
     return mu, max(var, SIGMA_LOS_MIN**2)
 
 
+@dataclass(frozen=True)
+class LmSolution:
+    """One LM run (`run_lm`): the values of every key it was given, the graph's error at
+    them and the iterations taken."""
+
+    values: gtsam.Values
+    error: float
+    iterations: int
+
+
 def run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
-           max_iterations: int) -> gtsam.LevenbergMarquardtOptimizer:
-    """Levenberg-Marquardt over `graph` from `initial` at the batch's tolerances; the
-    optimiser is returned after `optimize()` (its values, error and iteration count)."""
+           max_iterations: int) -> LmSolution:
+    """Levenberg-Marquardt over `graph` from `initial` at the batch's tolerances.
+
+    The optimiser carries only the keys `graph` touches: an evidence window's graph
+    (`graph.evidence_window`) touches a fifth of a long log's keyframes, and LM's per-
+    iteration work on the others (retraction, copies) is wasted. The keys it does not
+    touch come back unchanged from `initial`."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
     params.setRelativeErrorTol(LM_RELATIVE_TOL)
     params.setAbsoluteErrorTol(1e-6)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial, params)
+    keys = graph.keyVector()
+    subset = len(keys) < initial.size()
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, initial.extract(keys) if subset else initial,
+                                            params)
     opt.optimize()
-    return opt
+    values = opt.values()
+    if subset:
+        merged = gtsam.Values(initial)
+        merged.update(values)
+        values = merged
+    return LmSolution(values, float(opt.error()), int(opt.iterations()))
 
 
 def _smooth_per_anchor(ll_los: np.ndarray, ll_nlos: np.ndarray, anchor: np.ndarray,
@@ -717,10 +739,10 @@ class _EmGraphs:
         """One LM solve at NLOS responsibilities `g` from `vals`."""
         opt = run_lm(self.with_ranges(frozen, z, sigma_los, 1.0 - g, g), vals,
                       max_it or self.g_cfg.lm_max_iterations)
-        self.iterations += opt.iterations()
-        log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations(),
-                  opt.error(), self.mix)
-        return opt.values()
+        self.iterations += opt.iterations
+        log.debug("batch LM: %d iterations, error %.3f, model %s", opt.iterations,
+                  opt.error, self.mix)
+        return opt.values
 
 
 def _em_marginals(
@@ -1072,7 +1094,7 @@ def motion_fit_error(
     built differently by; and the solution it is taken at (a start for the next)."""
     graph = with_robust_ranges(cfg, base_graph, rec, scale, sigma, with_bias)
     opt = run_lm(graph, initial, cfg.graph.lm_max_iterations)
-    return float(opt.error()), opt.values()
+    return opt.error, opt.values
 
 
 def with_robust_ranges(
