@@ -1,12 +1,14 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""The graph's own start helpers (`uwbfuse.positioning.start`): the standstill fix."""
+"""The graph's own start helpers (`uwbfuse.positioning.start`): the standstill fix and the
+sparse-range start on the start's one model."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from uwbfuse.positioning.start import solve_static
+from uwbfuse.positioning.start import solve_start, solve_static
+from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
 
 ANCHORS = AnchorMap(ids=("a", "b", "c", "d"),
@@ -141,3 +143,51 @@ def test_backdated_start_puts_the_buffered_data_in_the_graph() -> None:
     gp = np.column_stack([np.interp(smoothed.t_ns[pre], gt.t_ns, gt.position[:, i])
                           for i in range(2)])
     assert np.sqrt(np.mean(np.sum((smoothed.position[pre, :2] - gp) ** 2, axis=1))) < 0.05
+
+
+def _sparse_log(offset: float, scale: float, seed: int = 0):
+    """A base driving a 20 s arc from (5, 4) heading 0.6 rad, one range every 0.25 s
+    round-robin over the anchors (tag 0.2 m ahead, 0.3 m up), ranges `scale` long plus
+    `offset`; its wheel track, the ranges and the true start pose."""
+    t = np.arange(0, 20_000_000_001, 20_000_000, dtype=np.int64)  # 50 Hz
+    track = WheelTrack()
+    track.add(t, np.full(len(t), 0.8), np.full(len(t), 0.08))
+    t_r = np.arange(250_000_000, 20_000_000_000, 250_000_000, dtype=np.int64)
+    a_r = np.arange(len(t_r)) % len(ANCHORS)
+    start = np.array([5.0, 4.0, 0.6])
+    pose = np.array([se2_compose(start, p) for p in track.at(t_r)])
+    tag = np.array([0.2, 0.0, 0.3])
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    tag_map = np.column_stack([pose[:, 0] + c * tag[0], pose[:, 1] + s * tag[0],
+                               np.full(len(t_r), 0.3)])
+    d = np.linalg.norm(ANCHORS.positions[a_r] - tag_map, axis=1)
+    z = (1.0 + scale) * d + offset + np.random.default_rng(seed).normal(0.0, 0.05, len(d))
+    return track, t_r, a_r, z, tag, start
+
+
+def test_sparse_start_places_the_track_through_an_offset_and_a_scale() -> None:
+    """test that one range at a time along a wheel track gives the base pose at the end,
+    the range scale and its std back (the common offset solved alongside)"""
+    track, t_r, a_r, z, tag, start = _sparse_log(0.25, 0.05)
+    t_now = int(t_r[-1])
+    state = solve_start(track, ANCHORS, t_r, a_r, z, tag, 0.0, t_now)
+    assert state is not None
+    truth = se2_compose(start, track.at(t_now))
+    assert np.linalg.norm(state.position[:2] - truth[:2]) < 0.1
+    assert state.position[2] == 0.0
+    yaw = np.arctan2(state.R_map_base[1, 0], state.R_map_base[0, 0])
+    assert abs(np.remainder(yaw - truth[2] + np.pi, 2 * np.pi) - np.pi) < 0.02
+    assert state.range_scale == pytest.approx(1.05, abs=0.01)
+    assert 0.0 < state.range_scale_sigma < 0.01
+    assert state.range_sigma == pytest.approx(0.05, abs=0.02)
+
+
+def test_sparse_start_refuses_an_offset_past_the_radios(monkeypatch) -> None:
+    """test that ranges 1.5 m long (past START_MAX_OFFSET_M, no antenna delay is that
+    large) give no start, and that it is the bound that refuses them"""
+    from uwbfuse.positioning import start as start_mod
+
+    track, t_r, a_r, z, tag, _ = _sparse_log(1.5, 0.0)
+    assert solve_start(track, ANCHORS, t_r, a_r, z, tag, 0.0, int(t_r[-1])) is None
+    monkeypatch.setattr(start_mod, "START_MAX_OFFSET_M", 2.0)
+    assert solve_start(track, ANCHORS, t_r, a_r, z, tag, 0.0, int(t_r[-1])) is not None

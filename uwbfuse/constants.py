@@ -49,6 +49,10 @@ STATIC_MAX_TURN_RAD = 0.3
 # bound on a standstill fix's common range scale: a guard (clocks err by ppm, radios met read a
 # few % long); beyond 15 % a fit on few anchors trades position for scale
 STATIC_MAX_SCALE = 0.15
+# range sigmas: prior std of the base height where the sparse start holds it on the floor
+# (a wheeled base); an exact hold would drop the unknown, this keeps one model and a well
+# conditioned solve (1e-3 sigma moves the height by under a millimetre)
+HELD_HEIGHT_SIGMAS = 1e-3
 # m: soft-L1 scale of the sparse start's solves: SOFT_L1_SIGMAS range sigmas of 0.1 m (UWB LOS)
 SOFT_L1_M = 0.2
 # m: largest common range offset of a sparse start: an antenna delay is decimetres; a minimum

@@ -23,8 +23,10 @@ Steps:
    p0 + Rz(yaw0) (d(t) + R'(t) tag_in_base). Eight yaw seeds avoid local minima; the
    solution is accepted when the heading std and the residuals are consistent (robust
    spread within 3 range sigmas or 3 % of the median range, whichever is larger: large
-   sites) and no other minimum comes close. This raw-range solve over the wheel track is
-   what `positioning/start.py` does for round-robin ranges, so the graph can use it too.
+   sites) and no other minimum comes close. This model (`StartProblem`), its solve from
+   the seeds (`solve_seeds`) and its acceptance rule (`best_minimum`) are the start's only
+   ones: `positioning/start.py` places the wheel track with them for round-robin ranges
+   (one common offset, the height held), where there are no fixes to seed from.
 3. UWB only: position from the fixes; heading is the UWB track direction once moving
    (or unknown, yaw_sigma = pi, after `heading_timeout` seconds without motion).
 
@@ -204,14 +206,19 @@ class _Track:
 
 
 @dataclass
-class _HeadingResiduals:
-    """Whitened residuals and Jacobian of the heading solve (`Initialiser._solve_heading`).
+class StartProblem:
+    """Whitened residuals and Jacobian of the start solve, the one model of every start:
+    a dead-reckoned relative track placed in the map by the raw ranges
+    (`Initialiser._solve_heading` with the IMU or wheel track, `start.solve_start` with the
+    wheel track of a sparse round-robin radio).
 
     Unknowns x: start base position p0 (3) m and yaw0 rad in the map frame, then the
     common range scale error k (n_k = 1: ranges read (1 + k) x the distance), the start
     velocity (3, m/s, when `solve_v`), the track's sensitivity parameters (n_s: accel
-    bias, gyro bias, tilt) and the per-anchor range biases (n_b, m). Residuals: each range
-    over `sig`, then the priors (start fix, velocity, sensitivities, biases, scale, height).
+    bias, gyro bias, tilt) and the range offsets (n_b, m; `anc_col` maps each range to
+    its offset: one per anchor, or one common offset). Residuals: each range over `sig`,
+    then the priors (start fix, velocity, sensitivities, offsets, scale, height); a prior
+    of infinite std is no prior (its rows are zero).
     """
 
     w0: F64  # (N,3) tag relative to the window-start base, yaw-zero frame, m
@@ -231,6 +238,7 @@ class _HeadingResiduals:
     n_k: int
     n_s: int
     n_b: int
+    k_sigma: float = _SCALE_SIGMA  # prior std of the range scale error
 
     @property
     def i_k(self) -> int:
@@ -308,8 +316,8 @@ class _HeadingResiduals:
             jac[row:row + n_b, i_b:] = np.eye(n_b) / self.b_sigma
             row += n_b
         if n_k:
-            f[row] = x[i_k] / _SCALE_SIGMA
-            jac[row, i_k] = 1.0 / _SCALE_SIGMA
+            f[row] = x[i_k] / self.k_sigma
+            jac[row, i_k] = 1.0 / self.k_sigma
             row += 1
         f[row] = (x[2] - self.z_prior) / self.z_sigma
         jac[row, 2] = 1.0 / self.z_sigma
@@ -832,7 +840,7 @@ class Initialiser:
             z_prior = default_tag_z(self.anchors.positions) - float(self.lever[2])
             z_sigma = _Z_SIGMA_FREE
 
-        problem = _HeadingResiduals(
+        problem = StartProblem(
             w0=w0, sens=sens, dtr=dtr, anc=anc, anc_col=anc_col, rr=rr, sig=sig, lev0=lev0,
             prior=prior, sens_sigma=trk.sens_sigma, b_sigma=b_sigma, z_prior=z_prior,
             z_sigma=z_sigma, solve_v=solve_v, n_k=n_k, n_s=n_s, n_b=n_b)
@@ -1005,7 +1013,7 @@ class StartVerdict:
     reason: str
 
 
-def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
+def solve_seeds(problem: StartProblem, seeds: list[F64]) -> list[LmResult]:
     """The start solve: `robust_lm` (soft-L1 at SOFT_L1_SIGMAS range sigmas) from each
     seed x0 of `problem`'s unknowns; the local minima found."""
     sols = []
@@ -1017,12 +1025,12 @@ def solve_seeds(problem: _HeadingResiduals, seeds: list[F64]) -> list[LmResult]:
 
 
 def accept_start(
-    sols: list[LmResult], problem: _HeadingResiduals, trk: _Track, t_ns: int, w_start: int,
+    sols: list[LmResult], problem: StartProblem, trk: _Track, t_ns: int, w_start: int,
     motion_start: int | None, max_win: float, gyro_bias: F64, accel_bias: F64, still: bool,
     narrow_basin: bool = False,
 ) -> StartVerdict:
-    """The acceptance rule of `Initialiser`'s heading solve (the sparse-range start keeps its
-    own, `start.solve_start`): the state at t_ns from the local minima `sols` of `problem`
+    """`Initialiser`'s heading solve judged by the start's acceptance rule (`best_minimum`):
+    the state at t_ns from the local minima `sols` of `problem`
     over the window from `w_start` ns, accepted when its residuals are consistent (robust
     spread within 3 range sigmas or _MAX_MAD_REL of the median range, 60 % inliers) and its
     yaw is determined (no rival
@@ -1035,19 +1043,16 @@ def accept_start(
     n_r, n_k, n_s, solve_v = len(rr), problem.n_k, problem.n_s, problem.solve_v
     ts0 = w_start / NS_PER_S
     t_now = t_ns / NS_PER_S
-    sols.sort(key=lambda s: s.cost)
-    best = sols[0]
-    yaw_best = _wrap(best.x[3])
-    rival = [s for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > RIVAL_SEPARATION]
+    found = best_minimum(sols, problem)
+    best, consistent, mad, inliers, margin = (found.best, found.consistent, found.mad,
+                                              found.inliers, found.margin)
     dof = max(n_r - n_unk, 1)
-    consistent, mad, inliers = start_consistent(best.fun[:n_r], float(np.median(rr)), sig)
     scale2 = max(1.0, 2.0 * best.cost / dof)
     try:
         cov = np.linalg.inv(best.jac.T @ best.jac) * scale2
     except np.linalg.LinAlgError:
         return StartVerdict(None, False, False, "heading solve singular")
     yaw_sigma = min(float(np.sqrt(max(cov[3, 3], 0.0))), math.pi)
-    margin = rival_margin(best.cost, [s.cost for s in rival])
     x = best.x
     p0, yaw0 = x[:3], float(x[3])
     v0 = x[i_v:i_v + 3] if solve_v else np.zeros(3)
@@ -1096,6 +1101,32 @@ def accept_start(
                   f"MAD {mad:.1f} sigma, inliers {inliers:.2f}, rival margin {margin:.1f})")
         return StartVerdict(state, consistent, False, reason)
     return StartVerdict(state, consistent, True, "initialised")
+
+
+@dataclass(frozen=True)
+class StartMinimum:
+    """The acceptance rule's reading of a start solve's local minima (`best_minimum`)."""
+
+    best: LmResult  # the lowest cost
+    consistent: bool  # its residuals pass `start_consistent`
+    mad: float  # their robust spread, range sigmas
+    inliers: float  # their share inside the consistency limit
+    margin: float  # `rival_margin` over the minima of other yaw basins
+
+
+def best_minimum(sols: list[LmResult], problem: StartProblem) -> StartMinimum:
+    """The acceptance rule of every start solve on the local minima `sols` of `problem`:
+    the best one's consistency (`start_consistent`) and its margin over the best rival, a
+    minimum whose yaw lies more than RIVAL_SEPARATION away (`rival_margin`); a start
+    needs both (consistent, margin >= RIVAL_MARGIN)."""
+    n_r = len(problem.rr)
+    sols = sorted(sols, key=lambda s: s.cost)
+    best = sols[0]
+    yaw_best = _wrap(best.x[3])
+    rival = [s.cost for s in sols[1:] if abs(_wrap(s.x[3] - yaw_best)) > RIVAL_SEPARATION]
+    consistent, mad, inliers = start_consistent(best.fun[:n_r], float(np.median(problem.rr)),
+                                                problem.sig)
+    return StartMinimum(best, consistent, mad, inliers, rival_margin(best.cost, rival))
 
 
 def start_consistent(res: F64, median_range: float, sig: float) -> tuple[bool, float, float]:

@@ -4,15 +4,16 @@
 The positioning `Initialiser` builds its heading solve on per-epoch multilateration fixes;
 when a radio ranges to one anchor at a time at a few Hz (the Labyrinth and Plaza logs),
 there are no fixes and it never answers. Then this module solves the start directly from
-the raw ranges: the wheel dead-reckoning track d(t) (base frame at its first sample) is
-placed in the map by an unknown planar pose (x0, y0, yaw0), a common range offset c and a
-common range scale error k, and the start's robust LM (`initialisation.robust_lm`, the one
-optimiser of every start solve, soft-L1) fits (1 + k) |p0 + R(yaw0) d(t) + R(t) tag -
-anchor| + c to every range so far, from several yaw seeds; a minimum with |c| or |k| past
-the radios' physical range (START_MAX_OFFSET_M, START_MAX_SCALE) is no start. The answer is
-accepted once the vehicle has travelled `MIN_TRAVEL_M`, the best solution's residuals are
-consistent and no other local minimum comes close. Sensors only: no ground truth, no given
-pose.
+the raw ranges with the start's one model (`initialisation.StartProblem`): the wheel
+dead-reckoning track d(t) (base frame at its first sample) is placed in the map by an
+unknown planar pose (x0, y0, yaw0), a common range offset c and a common range scale
+error k, fitted by the start's one optimiser (`initialisation.solve_seeds`, soft-L1 robust
+LM) from several yaw seeds to (1 + k) |p0 + R(yaw0) d(t) + R(t) tag - anchor| + c for
+every range so far; a minimum with |c| or |k| past the radios' physical range
+(START_MAX_OFFSET_M, START_MAX_SCALE) is no start. The answer is accepted by the start's
+one rule (`initialisation.best_minimum`) once the vehicle has travelled `MIN_TRAVEL_M`:
+the best solution's residuals are consistent and no other local minimum comes close.
+Sensors only: no ground truth, no given pose.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 
 from uwbfuse.constants import (
     HEIGHT_SPREAD_M,
+    HELD_HEIGHT_SIGMAS,
     MIN_TRAVEL_M,
     N_SEEDS,
     SOFT_L1_M,
@@ -38,11 +40,13 @@ from uwbfuse.constants import (
 )
 from uwbfuse.positioning.initialisation import (
     RIVAL_MARGIN,
-    RIVAL_SEPARATION,
     SOFT_L1_SIGMAS,
     InitialState,
+    StartProblem,
+    best_minimum,
     rival_margin,
     robust_lm,
+    solve_seeds,
     start_consistent,
 )
 from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
@@ -82,48 +86,38 @@ def solve_start(
     d = track.at(t_r)  # (n,3) x, y, theta in the track frame
     c, s = np.cos(d[:, 2]), np.sin(d[:, 2])
     tag_xy = np.column_stack([d[:, 0] + c * tag[0] - s * tag[1], d[:, 1] + s * tag[0] + c * tag[1]])
-    anc = anchors.positions[a_r]
-    dz = base_z + tag[2] - anc[:, 2]
-
     n_r = len(z_r)
-
-    def fun_jac(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x0, y0, yaw, off, scale = p
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        px = x0 + cy * tag_xy[:, 0] - sy * tag_xy[:, 1]
-        py = y0 + sy * tag_xy[:, 0] + cy * tag_xy[:, 1]
-        ex, ey = px - anc[:, 0], py - anc[:, 1]
-        rng = np.sqrt(ex**2 + ey**2 + dz**2)
-        g = (1.0 + scale) / np.maximum(rng, 1e-9)
-        jac = np.empty((n_r, 5))
-        jac[:, 0], jac[:, 1] = g * ex, g * ey
-        jac[:, 2] = g * (ex * (-sy * tag_xy[:, 0] - cy * tag_xy[:, 1])
-                         + ey * (cy * tag_xy[:, 0] - sy * tag_xy[:, 1]))
-        jac[:, 3], jac[:, 4] = 1.0, rng
-        return (1.0 + scale) * rng + off - z_r, jac
-
+    sig = SOFT_L1_M / SOFT_L1_SIGMAS  # the range sigma the soft-L1 scale is counted in
+    # the start's one model (`initialisation.StartProblem`) on the wheel track (the base at
+    # the track's first sample, so the yaw-zero frame is the track frame): one common range
+    # offset without a prior, the scale without one (both bounded below), the base height
+    # held on the floor
+    problem = StartProblem(
+        w0=np.column_stack([tag_xy, np.full(n_r, float(tag[2]))]), sens=np.zeros((n_r, 3, 0)),
+        dtr=np.zeros(n_r), anc=anchors.positions[a_r], anc_col=np.zeros(n_r, np.int64),
+        rr=z_r, sig=sig, lev0=np.zeros(3), prior=None, sens_sigma=np.zeros(0),
+        b_sigma=math.inf, z_prior=base_z, z_sigma=HELD_HEIGHT_SIGMAS * sig, solve_v=False,
+        n_k=1, n_s=0, n_b=1, k_sigma=math.inf)
+    i_k, i_b = problem.i_k, problem.i_b
     centre = anchors.positions[:, :2].mean(axis=0)
-    sols = []
+    mid = tag_xy[len(tag_xy) // 2]
+    seeds = []
     for k in range(N_SEEDS):
         yaw0 = 2.0 * math.pi * k / N_SEEDS
         # seed the position so that the track's middle sits at the anchors' centre
-        mid = tag_xy[len(tag_xy) // 2]
         p0 = centre - _rot_z(yaw0)[:2, :2] @ mid
-        r = robust_lm(fun_jac, np.array([p0[0], p0[1], yaw0, 0.0, 0.0]), n_r, SOFT_L1_M)
-        # a minimum outside the radios' physical offset and scale is no start
-        if r is not None and abs(r.x[3]) <= START_MAX_OFFSET_M and abs(r.x[4]) <= START_MAX_SCALE:
-            sols.append((r.cost, r.x, r.jac))
+        seeds.append(np.array([p0[0], p0[1], base_z, yaw0, 0.0, 0.0]))
+    # a minimum outside the radios' physical offset and scale is no start
+    sols = [r for r in solve_seeds(problem, seeds)
+            if abs(r.x[i_b]) <= START_MAX_OFFSET_M and abs(r.x[i_k]) <= START_MAX_SCALE]
     if not sols:
         return None
-    sols.sort(key=lambda c_x: c_x[0])
-    best_cost, best, _ = sols[0]
-    yaw_b = best[2]
-    rivals = [c for c, x, _ in sols[1:]
-              if abs(math.remainder(x[2] - yaw_b, 2 * math.pi)) > RIVAL_SEPARATION]
-    if not _accepted(fun_jac(best)[0], z_r, best_cost, rivals):
+    found = best_minimum(sols, problem)
+    if not (found.consistent and found.margin >= RIVAL_MARGIN):
         return None
-    rms = math.sqrt(2.0 * best_cost / len(z_r))
-    pose_now = se2_compose(np.array([best[0], best[1], best[2]]), track.at(t_now))
+    best = found.best.x
+    rms = sig * math.sqrt(2.0 * found.best.cost / n_r)
+    pose_now = se2_compose(np.array([best[0], best[1], best[3]]), track.at(t_now))
     r_now = _rot_z(float(pose_now[2]))
     if len(track.t) and track.t[-1] <= t_now:
         v_now = float(track.v[-1])
@@ -139,34 +133,36 @@ def solve_start(
         position_sigma=max(rms, 0.1),
         yaw_sigma=0.1,
         still=False,
-        range_scale=1.0 + float(best[4]),
+        range_scale=1.0 + float(best[i_k]),
         range_sigma=rms,
-        range_scale_sigma=_scale_std(*fun_jac(best), rms),
+        range_scale_sigma=_scale_std(*problem.fun_jac(best), n_r, i_k, rms / sig),
     )
 
 
 def _accepted(res: np.ndarray, z_r: np.ndarray, best_cost: float, rivals: list[float]) -> bool:
-    """The acceptance rule of every start solve (`initialisation.start_consistent`,
-    `rival_margin`), on residuals `res` (m) of ranges `z_r` (m) and soft-L1 costs (m^2) in
-    range sigmas of SOFT_L1_M / SOFT_L1_SIGMAS (the heading solve's soft-L1 scale is
-    SOFT_L1_SIGMAS sigmas, too)."""
+    """The acceptance rule of the start (`initialisation.start_consistent`, `rival_margin`,
+    as `best_minimum` applies them) for the standstill fix, on residuals `res` (m) of
+    ranges `z_r` (m) and soft-L1 costs (m^2) at SOFT_L1_M, SOFT_L1_SIGMAS range sigmas."""
     sig = SOFT_L1_M / SOFT_L1_SIGMAS
     consistent, _, _ = start_consistent(res / sig, float(np.median(z_r)), sig)
     return consistent and rival_margin(
         best_cost / sig**2, [c / sig**2 for c in rivals]) >= RIVAL_MARGIN
 
 
-def _scale_std(f: np.ndarray, jac: np.ndarray, rms: float) -> float:
-    """Least-squares std of the start solve's scale (its last unknown) from the residuals
-    `f` and their Jacobian at the solution, scaled by the residuals' rms; inf where the
-    solve is singular. The rows carry the soft-L1 cost's Gauss-Newton Hessian weights
-    rho' + 2 rho'' z = (1 + z)^-3/2, z = (f / SOFT_L1_M)^2 (as scipy's `least_squares`)."""
-    jac = jac * ((1.0 + (f / SOFT_L1_M) ** 2) ** -0.75)[:, None]
+def _scale_std(f: np.ndarray, jac: np.ndarray, n_r: int, i_k: int, rms: float) -> float:
+    """Least-squares std of the start solve's scale (unknown `i_k`) from the whitened
+    residuals `f` (the first `n_r` of them ranges, soft-L1) and their Jacobian at the
+    solution, scaled by the ranges' rms (in range sigmas); inf where the solve is singular.
+    The range rows carry the soft-L1 cost's Gauss-Newton Hessian weights rho' + 2 rho'' z
+    = (1 + z)^-3/2, z = (f / SOFT_L1_SIGMAS)^2 (as scipy's `least_squares`)."""
+    w = np.ones(len(f))
+    w[:n_r] = (1.0 + (f[:n_r] / SOFT_L1_SIGMAS) ** 2) ** -0.75
+    jac = jac * w[:, None]
     try:
         cov = np.linalg.inv(jac.T @ jac) * rms * rms
     except np.linalg.LinAlgError:
         return math.inf
-    return float(math.sqrt(cov[-1, -1])) if cov[-1, -1] > 0.0 else math.inf
+    return float(math.sqrt(cov[i_k, i_k])) if cov[i_k, i_k] > 0.0 else math.inf
 
 
 
