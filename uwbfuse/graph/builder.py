@@ -949,7 +949,7 @@ class GraphBuilder:
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
-        d_a = self.range_bias[a] if self.with_bias else np.zeros(len(a))
+        d_a = self.class_offset(a)
         r_los = z - pred - d_a
         mix = self.mixture
         seg = (t - self.t0) // self.seg_ns
@@ -998,6 +998,22 @@ class GraphBuilder:
         rec.w_online.append(w)
         rec.r_online.append(r_los)
         rec.evidence.append(evidence)
+
+    def class_offset(self, a: np.ndarray) -> np.ndarray:
+        """The LOS range offset (m) each range of anchors `a` is classified LOS/NLOS against.
+
+        NLOS only lengthens a range: where every anchor is blocked at once, the offsets
+        take up the shared excess (the common one trades with the excess states) and
+        ranges classified against them pass NLOS for LOS from then on, a basin the fixed
+        lag never leaves (docs/results.md, "isam2 and the causal bound"). Online, a range
+        is therefore judged against the part of its anchor's offset that NLOS cannot have
+        made, the negative one, as batch's EM judges it against none (`offline.solve`);
+        the range factors keep the estimated offset. Batch's seeding pass keeps it whole.
+        """
+        if not self.with_bias:
+            return np.zeros(len(a))
+        d = self.range_bias[a]
+        return d if self.seeding else np.minimum(d, 0.0)
 
     def _jump_evidence(
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
