@@ -248,7 +248,9 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     """Test the online LOS/NLOS hypothesis search on a log where EM alone settles with LOS
     anchors taken for NLOS (warehouse, seed 3, 120 s).
 
-    Measured isam2: 0.113 m with the search (21 switches), 0.152 m without it. (Seed 1,
+    Measured isam2: 0.105 m with the search, 0.130 m without it (0.113 and 0.152 m while
+    the online ranges were classified against offsets that had taken up NLOS excess:
+    docs/results.md, "isam2 and the causal bound"). (Seed 1,
     which this test used, needs it no more since the start is taken once no rival heading
     is left: 0.156 and 0.164 m, against 0.173 and 0.390 m before; room seed 3 none since
     the LOS sigma is a MAD estimate: 0.014 m either way.)
@@ -262,7 +264,7 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     monkeypatch.setattr(graph_estimator, "REVIEW_SEARCH", False)
     without = _ate(estimate(sim.log, Method.ISAM2, Config()).trajectory, sim.log)
     assert with_search < 0.14
-    assert without > 1.25 * with_search
+    assert without > 1.15 * with_search
 
 
 def test_batch_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
