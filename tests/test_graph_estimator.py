@@ -624,7 +624,8 @@ def test_online_imu_noise_takes_the_loosest_factor_the_evidence_allows(
 def test_online_ranges_are_classified_against_the_offset_nlos_cannot_make():
     """Test that the online graph judges a range LOS/NLOS against the negative part of its
     anchor's estimated offset only (NLOS only lengthens a range; a positive offset may be
-    shared NLOS excess taken up), while batch's seeding pass uses the whole estimate."""
+    shared NLOS excess taken up), while batch's seeding pass, and a graph that cannot tell
+    the offset from the height, use the whole estimate."""
     from uwbfuse.graph.builder import GraphBuilder
     from uwbfuse.graph.imu import ImuBuffer
     from uwbfuse.graph.wheel import WheelTrack
@@ -637,8 +638,13 @@ def test_online_ranges_are_classified_against_the_offset_nlos_cannot_make():
                          velocity=np.zeros(3), gyro_bias=np.zeros(3), accel_bias=np.zeros(3),
                          position_sigma=0.1, yaw_sigma=0.1, still=False)
     a = np.array([0, 1, 2, 0])
-    for seeding, expected in ((False, [0.0, -0.08, 0.0, 0.0]), (True, [0.15, -0.08, 0.0, 0.15])):
-        b = GraphBuilder(Config(), anchors, frozenset({"wheel", "uwb"}), start, ImuBuffer(),
+    whole = [0.15, -0.08, 0.0, 0.15]
+    # batch's seeding pass, and a free height with coplanar anchors (no wheels: the common
+    # offset trades with the height), keep the whole estimate
+    for seeding, streams, expected in (
+            (False, {"wheel", "uwb"}, [0.0, -0.08, 0.0, 0.0]), (True, {"wheel", "uwb"}, whole),
+            (False, {"imu", "uwb"}, whole)):
+        b = GraphBuilder(Config(), anchors, frozenset(streams), start, ImuBuffer(),
                          WheelTrack(), record=seeding, seeding=seeding)
         b.range_bias[:] = [0.15, -0.08, 0.0]
         np.testing.assert_allclose(b.class_offset(a), expected)
