@@ -1013,8 +1013,8 @@ class GraphBuilder:
         made, the negative one, as batch's EM judges it against none (`offline.solve`);
         the range factors keep the estimated offset. Batch's seeding pass keeps it whole,
         and so does a graph whose height is free with coplanar anchors: there the common
-        offset trades with the height, and unchecked by the classes it grows (UWB-only
-        room: 0.10 -> 0.28 m, isam2-smoothed 0.024 -> 0.137 m).
+        offset trades with the height, and unchecked by the classes it grows (simulated
+        UWB-only room; docs/results.md).
         """
         if not self.with_bias:
             return np.zeros(len(a))
