@@ -248,7 +248,9 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     """Test the online LOS/NLOS hypothesis search on a log where EM alone settles with LOS
     anchors taken for NLOS (warehouse, seed 3, 120 s).
 
-    Measured isam2: 0.113 m with the search (21 switches), 0.152 m without it. (Seed 1,
+    Measured isam2: 0.105 m with the search, 0.130 m without it (0.113 and 0.152 m while
+    the online ranges were classified against offsets that had taken up NLOS excess:
+    docs/results.md, "isam2 and the causal bound"). (Seed 1,
     which this test used, needs it no more since the start is taken once no rival heading
     is left: 0.156 and 0.164 m, against 0.173 and 0.390 m before; room seed 3 none since
     the LOS sigma is a MAD estimate: 0.014 m either way.)
@@ -262,7 +264,7 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     monkeypatch.setattr(graph_estimator, "REVIEW_SEARCH", False)
     without = _ate(estimate(sim.log, Method.ISAM2, Config()).trajectory, sim.log)
     assert with_search < 0.14
-    assert without > 1.25 * with_search
+    assert without > 1.15 * with_search
 
 
 def test_batch_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
@@ -617,3 +619,56 @@ def test_online_imu_noise_takes_the_loosest_factor_the_evidence_allows(
     assert np.log2(out[0]) == pytest.approx(crossing, abs=1e-9)
     if expected_log2 is not None:
         assert np.log2(out[0]) == pytest.approx(expected_log2, abs=0.02)
+
+
+def test_online_ranges_are_classified_against_the_offset_nlos_cannot_make():
+    """Test that the online graph judges a range LOS/NLOS against the negative part of its
+    anchor's estimated offset only (NLOS only lengthens a range; a positive offset may be
+    shared NLOS excess taken up), while batch's seeding pass, and a graph that cannot tell
+    the offset from the height, use the whole estimate."""
+    from uwbfuse.graph.builder import GraphBuilder
+    from uwbfuse.graph.imu import ImuBuffer
+    from uwbfuse.graph.wheel import WheelTrack
+    from uwbfuse.positioning.initialisation import InitialState
+    from uwbfuse.streams import AnchorMap
+
+    anchors = AnchorMap(ids=("a", "b", "c"), positions=np.array(
+        [[0.0, 0, 2], [10.0, 0, 2], [0, 10.0, 2]]))
+    start = InitialState(t_ns=0, position=np.zeros(3), R_map_base=np.eye(3),
+                         velocity=np.zeros(3), gyro_bias=np.zeros(3), accel_bias=np.zeros(3),
+                         position_sigma=0.1, yaw_sigma=0.1, still=False)
+    a = np.array([0, 1, 2, 0])
+    whole = [0.15, -0.08, 0.0, 0.15]
+    # batch's seeding pass, and a free height with coplanar anchors (no wheels: the common
+    # offset trades with the height), keep the whole estimate
+    for seeding, streams, expected in (
+            (False, {"wheel", "uwb"}, [0.0, -0.08, 0.0, 0.0]), (True, {"wheel", "uwb"}, whole),
+            (False, {"imu", "uwb"}, whole)):
+        b = GraphBuilder(Config(), anchors, frozenset(streams), start, ImuBuffer(),
+                         WheelTrack(), record=seeding, seeding=seeding)
+        b.range_bias[:] = [0.15, -0.08, 0.0]
+        np.testing.assert_allclose(b.class_offset(a), expected)
+
+
+@pytest.mark.slow
+def test_isam2_calibrates_no_nlos_excess_into_the_range_offsets():
+    """Test that isam2 on the NLOS-heavy racetrack (seed 3: every anchor blocked from 5 to
+    40 s, then two in LOS until 80 s) tracks the LOS stretch: with its ranges classified
+    against the estimated offsets, the offsets took up ~0.15 m of shared excess in the
+    blocked start, the LOS anchors' ranges then passed for NLOS and the stretch was 0.27 m
+    off (RMS over 50-85 s; the causal batch ~0.04 m at its cut epochs). Measured 0.040 m."""
+    sim = simulate_with_truth("warehouse-nlos", 120.0, 3)
+    log = sim.log
+    res = estimate(log, Method.ISAM2, Config(), covariance=False)
+    traj = res.trajectory
+    t0 = int(log.ranges.t_ns[0])
+    sel = (traj.t_ns >= t0 + 50 * NS_PER_S) & (traj.t_ns <= t0 + 85 * NS_PER_S)
+    gt = log.ground_truth
+    g = np.column_stack([np.interp(traj.t_ns[sel], gt.t_ns, gt.position[:, k])
+                         for k in range(2)])
+    err = np.linalg.norm(traj.position[sel, :2] - g, axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.12
+    # no anchor offset ends up holding the excess (truth 0; measured 0.00-0.05 m, against
+    # 0.13-0.16 m when classified against the whole estimate)
+    bias = [v["bias_m"] for v in res.report["anchors"].values()]
+    assert max(bias) < 0.1

@@ -66,7 +66,7 @@ from uwbfuse.graph.wheel import (
 from uwbfuse.nlos import NlosModel, hmm_filter, jump_log_likelihoods, residual_jumps_by_anchor
 from uwbfuse.positioning.initialisation import range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
-from uwbfuse.positioning.start import planar_height
+from uwbfuse.positioning.start import anchors_observe_height, planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
 
 log = logging.getLogger(__name__)
@@ -326,6 +326,9 @@ class GraphBuilder:
         self.cv_motion = "imu" not in streams and not self.has_wheel
         self.has_imu = "imu" in streams or self.cv_motion
         self.planar = self.g.planar == "on" or (self.g.planar == "auto" and self.has_wheel)
+        # the ranges tell a common range offset from the position (`class_offset`): the
+        # height is held, or the anchors' heights differ enough to observe it
+        self.offset_observable = self.planar or anchors_observe_height(anchors.positions)
         self.period_ns = round(NS_PER_S / self.g.keyframe_rate)
         self.t0 = int(start.t_ns)
         self.k = -1
@@ -949,7 +952,7 @@ class GraphBuilder:
         m = pose_a.matrix()
         p_world = tag_kf @ m[:3, :3].T + m[:3, 3]
         pred = np.linalg.norm(p_world - self.anchors.positions[a], axis=1)
-        d_a = self.range_bias[a] if self.with_bias else np.zeros(len(a))
+        d_a = self.class_offset(a)
         r_los = z - pred - d_a
         mix = self.mixture
         seg = (t - self.t0) // self.seg_ns
@@ -998,6 +1001,25 @@ class GraphBuilder:
         rec.w_online.append(w)
         rec.r_online.append(r_los)
         rec.evidence.append(evidence)
+
+    def class_offset(self, a: np.ndarray) -> np.ndarray:
+        """The LOS range offset (m) each range of anchors `a` is classified LOS/NLOS against.
+
+        NLOS only lengthens a range: where every anchor is blocked at once, the offsets
+        take up the shared excess (the common one trades with the excess states) and
+        ranges classified against them pass NLOS for LOS from then on, a basin the fixed
+        lag never leaves (docs/results.md, "isam2 and the causal bound"). Online, a range
+        is therefore judged against the part of its anchor's offset that NLOS cannot have
+        made, the negative one, as batch's EM judges it against none (`offline.solve`);
+        the range factors keep the estimated offset. Batch's seeding pass keeps it whole,
+        and so does a graph whose height is free with coplanar anchors: there the common
+        offset trades with the height, and unchecked by the classes it grows (simulated
+        UWB-only room; docs/results.md).
+        """
+        if not self.with_bias:
+            return np.zeros(len(a))
+        d = self.range_bias[a]
+        return d if self.seeding or not self.offset_observable else np.minimum(d, 0.0)
 
     def _jump_evidence(
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray

@@ -433,7 +433,7 @@ class GraphEstimator(EstimatorBase):
         p = np.concatenate([rb.tag_kf @ poses[rb.ka][:3, :3].T + poses[rb.ka][:3, 3]
                             for rb in batches])
         h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
-        d = b.range_bias[anchor] if b.with_bias else np.zeros(len(h))
+        d = b.class_offset(anchor)
         e = self._smoothed_excess(sm, b, anchor, np.concatenate([rb.seg for rb in batches]),
                                   d + mix.mu_nlos)
         r_los = z - h - d
