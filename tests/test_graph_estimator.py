@@ -153,9 +153,10 @@ def test_range_bias_is_recovered():
     cfg = Config()
     cfg.graph.range_bias_anchor_sigma = 0.3
     res = estimate(log, Method.BATCH, cfg)
-    # no NLOS in this log: the held-out choice takes the robust model (measured 2.153
-    # against the mixture's 2.119 nats per range), every range LOS
-    assert res.report["batch"]["range_model"] == "robust"
+    # no NLOS in this log: the held-out choice takes a model that calibrates the offsets
+    # (measured: the calibrated mixture 2.183, robust 2.163, the mixture, its offsets held
+    # at zero through EM, 2.117 nats per range), every range LOS
+    assert res.report["batch"]["range_model"] in ("robust", "mixture, calibrated")
     assert all(v["nlos"] == 0 for v in res.report["anchors"].values())
     est = np.array([res.report["anchors"][a]["bias_m"] for a in log.anchors.ids])
     assert np.max(np.abs(est - sim.anchor_offset)) < 0.03  # measured 0.003

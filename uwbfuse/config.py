@@ -310,13 +310,17 @@ class GraphConfig(_Section):
     em_iterations: int = Field(
         3, ge=0, description="batch: NLOS expectation-maximisation rounds (0 = none)"
     )
-    range_model: Literal["auto", "mixture", "robust", "robust, common scale"] = Field(
+    range_model: Literal["auto", "mixture", "mixture, calibrated", "robust",
+                         "robust, common scale"] = Field(
         "auto", description="range error model. mixture = LOS/NLOS mixture with "
-        "per-anchor NLOS excess states (EM); robust = Huber around per-anchor offsets, the "
+        "per-anchor NLOS excess states (EM); mixture, calibrated = the same, EM run again "
+        "with each anchor's LOS offset held at the one calibrated before and their spread "
+        "from the log; robust = Huber around per-anchor offsets, the "
         "LOS sigma from the residuals (1.4826 MAD); robust, common scale = the same with "
         "one range scale for all anchors (batch, where scales are estimated); auto: batch "
         "fits each without a held-out eighth of the log's 2 s stretches and fits the one "
-        "that predicts those ranges best (log score) to the whole log; the online graph "
+        "that predicts those ranges best (log score; the calibrated mixture by one "
+        "standard error over the mixture) to the whole log; the online graph "
         "scores each new range under both before using it (prequential) and weights the "
         "ranges to come by the better model so far"
     )

@@ -296,6 +296,12 @@ BATCH_SEARCH_NATS = 20.0
 # s: stretch of the E-step search: the NLOS excess's correlation time ([nlos] tau), over which
 # an anchor keeps its class, as the search assumes; ~50 ranges per anchor at 40 Hz over four
 BATCH_SEARCH_WINDOW_S = 5.0
+# EM runs of the calibrated mixture after the first, each with the LOS offsets held at the
+# last release's: a bound on its cost (the second pass moved them by a centimetre or less)
+CALIBRATION_PASSES = 2
+# m: the tightest spread of the anchors' offsets the calibrated mixture holds them by: a
+# DW1000-class radio's timestamp resolution, 15.65 ps, is 4.7 mm of range
+ANCHOR_SPREAD_MIN = 0.005
 # LM stops when an iteration lowers the error by less than this fraction
 LM_RELATIVE_TOL = 1e-3
 # m: each anchor's range bias around the common one, as held in the LM rounds that free the

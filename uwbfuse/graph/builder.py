@@ -516,7 +516,8 @@ class GraphBuilder:
         # `auto` keeps the mixture online (batch chooses by held-out ranges): switched online on
         # early evidence, the graph lost more where the mixture later proved right (factory)
         # than it gained where it did not (Plaza)
-        self.robust_online = self.nlos and self.g.range_model not in ("auto", "mixture")
+        self.robust_online = self.nlos and not self.g.range_model.startswith(
+            ("auto", "mixture"))
         self._abs_r = MedianRing(PREQUENTIAL_WINDOW)  # |one-step residual| ring (m)
         self._robust_sigma: float | None = None  # cached robust_sigma() of the ring
 
@@ -1172,7 +1173,7 @@ class GraphBuilder:
         lag after the start are scored (before, the one-step predictions come from a graph
         still settling its start), once the robust sigma has MIN_PREQUENTIAL_RANGES
         residuals behind it."""
-        if self.g.range_model == "mixture":
+        if self.g.range_model.startswith("mixture"):
             return
         n = len(r_los)
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:

@@ -30,10 +30,12 @@ import numpy as np
 
 from uwbfuse.config import Config, GraphConfig, RobustKernel, UwbConfig
 from uwbfuse.constants import (
+    ANCHOR_SPREAD_MIN,
     BATCH_ANCHOR_BIAS_SIGMA,
     BATCH_SEARCH,
     BATCH_SEARCH_NATS,
     BATCH_SEARCH_WINDOW_S,
+    CALIBRATION_PASSES,
     CLASSIFIER_FIT_ITERATIONS,
     CLASSIFIER_FIT_RIDGE,
     EM_ROUND_LM_ITERATIONS,
@@ -75,11 +77,11 @@ log = logging.getLogger(__name__)
 
 
 def _cap_anchor_bias_sigma(graph: gtsam.NonlinearFactorGraph, n_anchor: int,
-                           configured: float) -> None:
+                           configured: float, cap: float = BATCH_ANCHOR_BIAS_SIGMA) -> None:
     """Tighten the configured C-D(a) priors (std `configured`, m) of `graph` to
     `builder.held_anchor_bias_sigma` by adding the complementary prior (information adds
     up)."""
-    held = held_anchor_bias_sigma(configured, BATCH_ANCHOR_BIAS_SIGMA)
+    held = held_anchor_bias_sigma(configured, cap)
     if held >= configured:
         return
     extra = (held**-2 - configured**-2) ** -0.5
@@ -373,10 +375,14 @@ class RangeModel:
     name: str
     nlos: bool  # the LOS/NLOS mixture (else Huber around the per-anchor offsets)
     common_scale: bool  # one range scale for every anchor (when scales are estimated)
+    # mixture: EM run again with each anchor's LOS offset held at its calibrated value
+    # (`_EmRun.recalibrate`) instead of at zero
+    calibrated: bool = False
 
 
 RANGE_MODELS = (
     RangeModel("mixture", nlos=True, common_scale=False),
+    RangeModel("mixture, calibrated", nlos=True, common_scale=False, calibrated=True),
     RangeModel("robust", nlos=False, common_scale=False),
     # the radios' clock (one scale for all) rather than each anchor's own
     RangeModel("robust, common scale", nlos=False, common_scale=True),
@@ -414,12 +420,29 @@ class _Problem:
     def fit(self, m: RangeModel, rec: dict[str, np.ndarray], initial: gtsam.Values,
             mix: NlosModel, scale0: np.ndarray | None) -> BatchResult:
         """Range model `m` fitted to the ranges `rec` from `initial`."""
-        if m.nlos:
-            return _solve_em(self.cfg, self.base_graph, initial, rec, self.anchors,
-                             self.n_kf, mix, self.t0_ns, scale0,
-                             nlos_first=self.nlos_first, wheel_scale=self.wheel_scale())
-        return _solve_robust(self.cfg, self.base_graph, initial, rec, self.anchors,
-                             self.n_kf, mix, self.t0_ns, scale0, m.common_scale)
+        return self.fit_all([m], rec, initial, mix, scale0)[m.name]
+
+    def fit_all(self, models: list[RangeModel], rec: dict[str, np.ndarray],
+                initial: gtsam.Values, mix: NlosModel, scale0: np.ndarray | None
+                ) -> dict[str, BatchResult]:
+        """Each of `models` fitted to the ranges `rec` from `initial`, by name. The
+        calibrated mixture continues the plain mixture's EM run where both are asked for."""
+        out: dict[str, BatchResult] = {}
+        em = [m for m in models if m.nlos]
+        if em:
+            plain = [] if any(m.calibrated for m in em) and len(em) > 1 else None
+            fit = _solve_em(self.cfg, self.base_graph, initial, rec, self.anchors,
+                            self.n_kf, mix, self.t0_ns, scale0, nlos_first=self.nlos_first,
+                            wheel_scale=self.wheel_scale(),
+                            calibrated=any(m.calibrated for m in em), uncalibrated=plain)
+            for m in em:
+                out[m.name] = plain[0] if plain and not m.calibrated else fit
+        for m in models:
+            if not m.nlos:
+                out[m.name] = _solve_robust(self.cfg, self.base_graph, initial, rec,
+                                            self.anchors, self.n_kf, mix, self.t0_ns, scale0,
+                                            m.common_scale)
+        return out
 
 
 def _cross_validated(
@@ -430,18 +453,21 @@ def _cross_validated(
     """`graph.range_model = "auto"`: each candidate fitted, over the keyframes of
     `windows` (None: all), without the held-out stretches of a phase (`heldout_mask`),
     phase after phase until MIN_SCORED_RANGES are held out; the best mean held-out log
-    score wins and is fitted to every range of the log."""
+    score wins (a refinement by one standard error, `_one_se_choice`) and is fitted to
+    every range of the log."""
     cfg = problem.cfg
     trial = problem.windowed(windows, initial)
     rec_cv = rec if windows is None else windows.ranges(rec)
     scored: dict[str, list[np.ndarray]] = {m.name: [] for m in candidates}
+    blocks: list[np.ndarray] = []  # each held-out range's stretch
     first: dict[str, BatchResult] | None = None
     for phase in HELDOUT_PHASES:
         held = heldout_mask(rec_cv["t_ns"], problem.t0_ns, phase)
         if not np.any(held):
             continue
         train, test = _subset(rec_cv, ~held), _subset(rec_cv, held)
-        fits = {m.name: trial.fit(m, train, initial, model, scale0) for m in candidates}
+        fits = trial.fit_all(candidates, train, initial, model, scale0)
+        blocks.append(heldout_block(test["t_ns"], problem.t0_ns))
         for name, f in fits.items():
             scored[name].append(heldout_log_score(f, train, test, problem.anchors,
                                                   problem.n_kf, cfg, problem.t0_ns))
@@ -451,8 +477,9 @@ def _cross_validated(
     n_scored = sum(len(x) for x in scored[candidates[0].name])
     if first is None or n_scored < MIN_HELDOUT_RANGES:  # too short to rank: the default
         return problem.fit(candidates[0], rec, initial, model, scale0)
-    scores = {name: float(np.mean(np.concatenate(x))) for name, x in scored.items()}
-    best = next(m for m in candidates if m.name == max(scores, key=lambda n: scores[n]))
+    per_range = {name: np.concatenate(x) for name, x in scored.items()}
+    scores = {name: float(np.mean(x)) for name, x in per_range.items()}
+    best = _one_se_choice(candidates, per_range, np.concatenate(blocks))
     log.info("batch range model (%d ranges held out): %s -> %s", n_scored,
              ", ".join(f"{n} {v:.3f}" for n, v in scores.items()), best.name)
     if best.nlos:  # EM from the online pass again: from the held-out fit it lands elsewhere
@@ -476,11 +503,47 @@ def _cross_validated(
 # their calibration, not from its twin a tenth of a second away; odometry bridges 2 s.
 
 
+def heldout_block(t_ns: np.ndarray, t0_ns: int) -> np.ndarray:
+    """Index of the HELDOUT_BLOCK_S stretch of the log each stamp (ns) falls in."""
+    return (np.asarray(t_ns, np.int64) - t0_ns) // round(HELDOUT_BLOCK_S * NS_PER_S)
+
+
 def heldout_mask(t_ns: np.ndarray, t0_ns: int, phase: int = HELDOUT_PHASES[0]) -> np.ndarray:
     """True for the ranges in the held-out stretches of `phase` (the first stretch is never
     held out: the start needs its ranges)."""
-    block = (np.asarray(t_ns, np.int64) - t0_ns) // round(HELDOUT_BLOCK_S * NS_PER_S)
+    block = heldout_block(t_ns, t0_ns)
     return ((block % HELDOUT_EVERY) == phase) & (block > 0)
+
+
+def _one_se_choice(candidates: list[RangeModel], score: dict[str, np.ndarray],
+                   block: np.ndarray) -> RangeModel:
+    """The candidate of the best mean held-out log score `score` (nats per range). A
+    refinement (the calibrated mixture refines the mixture) must beat what it refines by
+    one standard error of their paired score difference, or it leaves the choice: the
+    one-standard-error rule of cross-validation. The error counts each held-out stretch
+    `block` as one sample: its ranges share an NLOS episode and the same track error."""
+    best = max(candidates, key=lambda m: float(np.mean(score[m.name])))
+    base = next((m for m in candidates if m.nlos and not m.calibrated), None)
+    if not best.calibrated or base is None:
+        return best
+    gain, se = clustered_mean_se(score[best.name] - score[base.name], block)
+    if gain > se:
+        return best
+    return _one_se_choice([m for m in candidates if m is not best], score, block)
+
+
+def clustered_mean_se(x: np.ndarray, cluster: np.ndarray) -> tuple[float, float]:
+    """Mean of `x` and its standard error with the samples of one `cluster` correlated
+    (the cluster-robust sandwich estimate; inf with fewer than two clusters)."""
+    _, inv = np.unique(cluster, return_inverse=True)
+    total = np.bincount(inv, weights=x)
+    count = np.bincount(inv).astype(float)
+    mean = float(total.sum() / count.sum())
+    k = len(count)
+    if k < 2:
+        return mean, math.inf
+    se = math.sqrt(k / (k - 1) * float(np.sum((total - mean * count) ** 2))) / count.sum()
+    return mean, float(se)
 
 
 def _subset(rec: dict[str, np.ndarray], mask: np.ndarray) -> dict[str, np.ndarray]:
@@ -705,6 +768,15 @@ class _EmGraphs:
         self.with_bias = with_bias
         self.static: dict[bool, gtsam.NonlinearFactorGraph] = {}
         self.iterations = 0
+        self.hold = BATCH_ANCHOR_BIAS_SIGMA  # m: D(a) - C when released (`hold_offsets`)
+
+    def hold_offsets(self, d0: np.ndarray, spread: float) -> None:
+        """The freeze holds the LOS offsets D(a) at `d0` (m), the NLOS states revert to
+        it, and a release holds each within `spread` (m) of C: the static graphs are built
+        again."""
+        self.d0 = d0
+        self.hold = spread
+        self.static = {}
 
     def static_graph(self, frozen: bool) -> gtsam.NonlinearFactorGraph:
         """Base graph, the D(a) freeze (when frozen) and the NLOS state priors (built once)."""
@@ -729,7 +801,8 @@ class _EmGraphs:
         `w_los` on its LOS offset and `w_nlos` on its NLOS state."""
         graph = gtsam.NonlinearFactorGraph(self.static_graph(frozen))
         if not frozen and self.with_bias:
-            _cap_anchor_bias_sigma(graph, len(self.d0), self.g_cfg.range_bias_anchor_sigma)
+            _cap_anchor_bias_sigma(graph, len(self.d0), self.g_cfg.range_bias_anchor_sigma,
+                                   self.hold)
         self.factors.add_to(graph, z, sigma_los, w_los,
                             self.mix.sigma_nlos if self.states is not None else None, w_nlos)
         return graph
@@ -781,17 +854,29 @@ def _solve_em(
     nlos_first: bool,
     wheel_scale: _WheelScale | None = None,
     common_scale: bool = False,
+    calibrated: bool = False,
+    uncalibrated: list[BatchResult] | None = None,
 ) -> BatchResult:
     """One EM + LM run from the online trajectory, or NLOS-first (see `solve`);
     `common_scale`: the range scale (when estimated) is one for every anchor. Its phases
     (`_EmRun`): the NLOS-first round, the EM rounds, the scale settling, the LOS offsets'
-    release and the wheel-scale round."""
+    release and the wheel-scale round. `calibrated`: then EM again with the LOS offsets
+    held at the released ones (`_EmRun.recalibrate`), CALIBRATION_PASSES times;
+    `uncalibrated` receives the result before those passes."""
     run = _EmRun(cfg, base_graph, initial, rec, anchors, n_kf, model, t0_ns, scale0,
                  nlos_first, wheel_scale, common_scale)
     if nlos_first and run.states is not None:
         run.nlos_first_round()
     run.em_rounds()
     run.settle()
+    if calibrated:
+        if uncalibrated is not None:
+            uncalibrated.append(run.result(with_marginals=False))
+        for _ in range(CALIBRATION_PASSES):
+            if not run.recalibrate():
+                break
+            run.em_rounds()
+            run.settle()
     return run.result()
 
 
@@ -947,8 +1032,23 @@ class _EmRun:
             if self.wheel_scale.apply([self.base_graph, *self.graphs.static.values()]):
                 self.lm_round(self.g, False)
 
-    def result(self) -> BatchResult:
-        """The run's `BatchResult` at its final values."""
+    def recalibrate(self) -> bool:
+        """Hold EM's LOS offsets at the released ones (not at zero) from now on, and hold
+        each around the common offset C, when next released, by the spread the released
+        ones show (empirical Bayes: the RMS of D(a) - C, within ANCHOR_SPREAD_MIN and the
+        configured `range_bias_anchor_sigma`); False when the offsets are not held (no
+        NLOS model or no offsets estimated)."""
+        if not self.freeze:
+            return False
+        d = _bias_values(self.values, self.n_anchor)
+        spread = float(np.sqrt(np.mean((d - self.values.atDouble(C)) ** 2)))
+        self.graphs.hold_offsets(d, float(np.clip(spread, ANCHOR_SPREAD_MIN,
+                                                  self.g_cfg.range_bias_anchor_sigma)))
+        return True
+
+    def result(self, with_marginals: bool = True) -> BatchResult:
+        """The run's `BatchResult` at its final values (a snapshot: later phases do not
+        change it); `with_marginals`: with the marginals of its final graph."""
         uwb, states, values = self.uwb, self.states, self.values
         w = robust_weight(uwb.robust_kernel, uwb.kernel_threshold, self.r_los / self.sig_l)
         nlos_out = None
@@ -958,16 +1058,16 @@ class _EmRun:
         marginals = functools.partial(_em_marginals, self.graphs, values, self.rec,
                                       self.anchors, self.n_kf, self.h, self.r_los, self.g,
                                       self.sig_l, self.st_idx)
-        return BatchResult(values, self.g, w, self.r_los, self.mix, self.done,
-                           self.graphs.iterations, self.scale,
+        return BatchResult(values, self.g, w, self.r_los, copy.copy(self.mix), self.done,
+                           self.graphs.iterations, self.scale.copy(),
                            self.nlos_first and states is not None,
                            None if self.wheel_scale is None
                            else self.wheel_scale.applied.copy(),
                            nlos_states=nlos_out,
                            range_model="mixture" if states is not None else "robust",
                            classifier_weight=self.classifier_weight,
-                           marginals=marginals
-                           if self.g_cfg.marginal_covariances is not False else None)
+                           marginals=marginals if with_marginals
+                           and self.g_cfg.marginal_covariances is not False else None)
 
 
 def observed_information_share(
