@@ -142,3 +142,13 @@ def test_the_calibrated_mixture_recovers_constant_anchor_offsets():
     (off_mix, ate_mix), (off_cal, ate_cal) = out["mixture"], out["mixture, calibrated"]
     assert off_cal < 0.6 * off_mix
     assert ate_cal < ate_mix
+
+
+def test_uwb_only_coplanar_anchors_fit_the_mixture_alone():
+    """Test that where the height is free and the anchors coplanar (a UWB-only room), no
+    candidate that frees the anchors' offsets (robust, calibrated mixture) is fitted: a
+    common offset trades against the height there, which no held-out range shows."""
+    log = simulate_with_truth("room", 30.0, 0, streams=("uwb",)).log
+    res = estimate(log, Method.BATCH, Config(), covariance=False)
+    assert res.report["batch"]["range_model"] == "mixture"
+    assert res.report["batch"]["heldout_log_score"] is None

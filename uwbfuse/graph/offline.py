@@ -358,8 +358,8 @@ def solve(
         # the height is free and the anchors coplanar, so a common range offset trades
         # against the tag's height, and the robust model (its offsets free from the start)
         # takes that null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no
-        # held-out range can show
-        candidates = {n: m for n, m in candidates.items() if m.nlos}
+        # held-out range can show; the calibrated mixture frees them too
+        candidates = {n: m for n, m in candidates.items() if m.nlos and not m.calibrated}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))
