@@ -430,13 +430,13 @@ class _Problem:
         out: dict[str, BatchResult] = {}
         em = [m for m in models if m.nlos]
         if em:
-            plain = [] if any(m.calibrated for m in em) and len(em) > 1 else None
+            before: list[BatchResult] = []  # the plain mixture, when calibrated after it
             fit = _solve_em(self.cfg, self.base_graph, initial, rec, self.anchors,
                             self.n_kf, mix, self.t0_ns, scale0, nlos_first=self.nlos_first,
                             wheel_scale=self.wheel_scale(),
-                            calibrated=any(m.calibrated for m in em), uncalibrated=plain)
+                            calibrated=any(m.calibrated for m in em), uncalibrated=before)
             for m in em:
-                out[m.name] = plain[0] if plain and not m.calibrated else fit
+                out[m.name] = fit if m.calibrated or not before else before[0]
         for m in models:
             if not m.nlos:
                 out[m.name] = _solve_robust(self.cfg, self.base_graph, initial, rec,
