@@ -144,11 +144,28 @@ def test_the_calibrated_mixture_recovers_constant_anchor_offsets():
     assert ate_cal < ate_mix
 
 
-def test_uwb_only_coplanar_anchors_fit_the_mixture_alone():
-    """Test that where the height is free and the anchors coplanar (a UWB-only room), no
-    candidate that frees the anchors' offsets (robust, calibrated mixture) is fitted: a
-    common offset trades against the height there, which no held-out range shows."""
+def test_uwb_only_coplanar_anchors_keep_the_robust_model_out():
+    """Test that where the height is free and the anchors coplanar (a UWB-only room), the
+    robust candidates, whose per-anchor offsets are free from the start, are not fitted:
+    between them the offsets trade against the height there, which no held-out range
+    shows. The two mixtures are."""
     log = simulate_with_truth("room", 30.0, 0, streams=("uwb",)).log
     res = estimate(log, Method.BATCH, Config(), covariance=False)
-    assert res.report["batch"]["range_model"] == "mixture"
-    assert res.report["batch"]["heldout_log_score"] is None
+    assert set(res.report["batch"]["heldout_log_score"]) == {"mixture", "mixture, calibrated"}
+
+
+@pytest.mark.parametrize("method", [Method.ISAM2, Method.BATCH])
+def test_uwb_only_coplanar_anchors_hold_the_common_offset(method):
+    """Test that where the height is free and the anchors coplanar (a UWB-only room whose
+    radios have no offsets), the common range offset is held at zero: each anchor's
+    reported offset stays within a few centimetres and the height near the truth, where a
+    free common offset drifted with the height (0.25 m and 0.48 m too high online)."""
+    sim = simulate_with_truth("room", 30.0, 0, streams=("uwb",))
+    res = estimate(sim.log, method, Config(), covariance=False)
+    offsets = np.array([a["bias_m"] for a in res.report["anchors"].values()])
+    assert np.all(np.abs(offsets) < 0.05), offsets
+    gt = sim.log.ground_truth
+    traj = res.trajectory
+    i = np.clip(np.searchsorted(gt.t_ns, traj.t_ns), 0, len(gt.t_ns) - 1)
+    dz = traj.position[:, 2] - gt.position[i, 2]
+    assert abs(float(np.mean(dz))) < 0.05, float(np.mean(dz))

@@ -335,6 +335,9 @@ ANCHOR_SIGMA = 1e-3
 # m: prior std of the common range bias in the online graph: at a log's start every anchor
 # may be in NLOS at once, and a loose prior takes that shared excess for a calibration offset
 ONLINE_COMMON_BIAS_SIGMA = 0.05
+# m: prior std of the common range bias where the ranges cannot tell it from the tag's
+# height (height free, anchors coplanar): held at zero, the offset of calibrated radios
+UNOBSERVED_COMMON_BIAS_SIGMA = 1e-3
 # m: prior std of each anchor's range bias around the common one online: a few seconds of
 # ranges barely separate an offset from the position, and a loosely held one wanders
 ONLINE_ANCHOR_BIAS_SIGMA = 0.02

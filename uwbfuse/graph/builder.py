@@ -46,6 +46,7 @@ from uwbfuse.constants import (
     REPEAT_WINDOW_NS,
     SCALE_BLOCK,
     SIGMA_LOS_MIN,
+    UNOBSERVED_COMMON_BIAS_SIGMA,
     VIRTUAL_BIAS_SIGMA,
     WHEEL_HUBER_K,
 )
@@ -755,6 +756,12 @@ class GraphBuilder:
             # barely separate it from the position, and a loosely held D(a) wanders by
             # centimetres (see ONLINE_ANCHOR_BIAS_SIGMA).
             s_on = min(self.g.range_bias_sigma, ONLINE_COMMON_BIAS_SIGMA)
+            s_common = self.g.range_bias_sigma
+            if not self.offset_observable:
+                # the common offset and the height are one null direction of the ranges:
+                # left free, the fixed-lag smoother drifts along it (docs/results.md, "The
+                # common range offset where the height is free")
+                s_on = s_common = UNOBSERVED_COMMON_BIAS_SIGMA
             # (not in batch's seeding pass: its EM was tuned from that seed; docs/results.md,
             # "Constants in one module")
             s_a = self.g.range_bias_anchor_sigma
@@ -767,7 +774,7 @@ class GraphBuilder:
                     C, D(a), 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_a)))
             if self.full_graph is not None:
                 self.full_graph.add(gtsam.PriorFactorDouble(
-                    C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, self.g.range_bias_sigma)))
+                    C, 0.0, gtsam.noiseModel.Isotropic.Sigma(1, s_common)))
                 for a in range(len(self.anchors)):
                     self.full_graph.add(gtsam.BetweenFactorDouble(
                         C, D(a), 0.0,
@@ -1014,8 +1021,8 @@ class GraphBuilder:
         made, the negative one, as batch's EM judges it against none (`offline.solve`);
         the range factors keep the estimated offset. Batch's seeding pass keeps it whole,
         and so does a graph whose height is free with coplanar anchors: there the common
-        offset trades with the height, and unchecked by the classes it grows (simulated
-        UWB-only room; docs/results.md).
+        offset is held at zero (it trades with the height), and what each anchor's offset
+        differs from it by may take either sign.
         """
         if not self.with_bias:
             return np.zeros(len(a))

@@ -356,10 +356,12 @@ def solve(
         return problem.fit(candidates[cfg.graph.range_model], rec, initial, model, scale0)
     if not (planar or anchors_observe_height(anchors)):
         # the height is free and the anchors coplanar, so a common range offset trades
-        # against the tag's height, and the robust model (its offsets free from the start)
-        # takes that null direction (UWB-only room: 1.35 m low, xy 0.55 m off) that no
-        # held-out range can show; the calibrated mixture frees them too
-        candidates = {n: m for n, m in candidates.items() if m.nlos and not m.calibrated}
+        # against the tag's height: the graph holds the common offset C at zero
+        # (`GraphBuilder`), but the robust model's per-anchor offsets, free from the start,
+        # still take that null direction between them, which no held-out range can show
+        # (docs/results.md, "The common range offset where the height is free"). The
+        # mixtures free D(a) - C only after EM, around the held C.
+        candidates = {n: m for n, m in candidates.items() if m.nlos}
     if len(candidates) == 1:
         out = problem.fit(next(iter(candidates.values())), rec, initial, model, scale0)
         out.range_model = next(iter(candidates))
