@@ -414,6 +414,22 @@ def test_uwb_only_log_is_smoothed_with_a_constant_velocity_prior():
     assert batch < 1.05 * wls, (batch, wls)
 
 
+def test_uwb_only_batch_fits_the_motion_prior_density():
+    """Test that without IMU and wheels batch takes the constant-velocity prior's
+    acceleration density from the log (`graph.motion_accel_density = "auto"`): the room's
+    robot, at 0.1 m/s, gets one well below the walking-pace start of 1 m/s^2/sqrt(Hz), and
+    its track is better than at that start held fixed."""
+    sim = simulate_with_truth("room", 30.0, 0)
+    log = _drop(sim.log, "imu", "wheel")
+    fitted = estimate(log, Method.BATCH, Config(), covariance=False)
+    density = fitted.report["batch"]["motion_accel_density"]
+    assert 0.01 < density < 0.5, density
+    fixed = estimate(log, Method.BATCH, Config(graph={"motion_accel_density": 1.0}),
+                     covariance=False)
+    assert "motion_accel_density" not in fixed.report["batch"]
+    assert _ate(fitted.trajectory, log) < 0.8 * _ate(fixed.trajectory, log)
+
+
 def test_motion_prior_densities_set_how_smooth_a_uwb_only_track_is():
     """Test that `graph.motion_accel_density` and `motion_turn_density` reach the
     constant-velocity prior: a smaller acceleration density gives a smoother track, a

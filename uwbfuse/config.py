@@ -227,11 +227,13 @@ class InitConfig(_Section):
 class GraphConfig(_Section):
     keyframe_rate: float = Field(10.0, gt=0, description="keyframes per second, Hz")
     lag: float = Field(5.0, gt=0, description="fixed-lag window of the online smoother, s")
-    motion_accel_density: float = Field(
-        1.0, gt=0, allow_inf_nan=False,
-        description="logs with neither IMU nor wheels: white-noise acceleration of the "
-        "constant-velocity motion prior between keyframes, m/s^2/sqrt(Hz) (1: a walker or "
-        "pushed trolley changes its speed by about 1 m/s within a second)"
+    motion_accel_density: float | Literal["auto"] = Field(
+        "auto", description="logs with neither IMU nor wheels: white-noise acceleration "
+        "of the constant-velocity motion prior between keyframes, m/s^2/sqrt(Hz); a number "
+        "is used as given; auto = estimated from the log: the online graph uses 1 (a walker "
+        "or pushed trolley changes its speed by about 1 m/s within a second), batch and "
+        "isam2-smoothed's final smoothing the density of greatest Laplace evidence, 1/64 .. "
+        "16 times that, where a likelihood-ratio test rejects 1"
     )
     motion_turn_density: float = Field(
         0.5, gt=0, allow_inf_nan=False,
@@ -283,7 +285,7 @@ class GraphConfig(_Section):
         "biases hold it within the smaller of this and 0.02 m, unless it is set above the "
         "default: anchors known to differ by more)"
     )
-    @field_validator("imu_noise_inflation")
+    @field_validator("imu_noise_inflation", "motion_accel_density")
     @classmethod
     def _positive_inflation(cls, v: float | str) -> float | str:
         if not isinstance(v, str) and not (math.isfinite(v) and v > 0):

@@ -161,6 +161,16 @@ VIRTUAL_BIAS_SIGMA = 1e-3
 # log2 of the largest IMU noise inflation (256): there the default accelerometer density
 # equals the constant-velocity prior's, so an IMU held looser says no more than no IMU
 IMU_INFLATION_MAX_LOG2 = 8.0
+# m/s^2/sqrt(Hz): the constant-velocity prior's acceleration density before the log tells
+# it (`graph.motion_accel_density = "auto"`): a walker or pushed trolley changes its speed
+# by about 1 m/s within a second
+MOTION_ACCEL_DENSITY_START = 1.0
+# log2 of the smallest factor on it the evidence may choose (1/64, 0.016 m/s^2/sqrt(Hz)): a
+# speed that changes by 0.05 m/s in 10 s, a tag at rest as far as ranges at cm noise tell
+MOTION_NOISE_MIN_LOG2 = -6.0
+# log2 of the largest (16 m/s^2/sqrt(Hz)): 16 m/s of speed change within a second, no
+# indoor vehicle or walker
+MOTION_NOISE_MAX_LOG2 = 4.0
 
 # Standstill detection of the filters' dead reckoning (`filters.dead_reckoning`)
 # s: longest extrapolation past the last sample: 25 periods of 50 Hz wheels; an AGV's 0.3 m/s^2

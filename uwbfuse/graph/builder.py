@@ -37,6 +37,7 @@ from uwbfuse.constants import (
     MAX_SCALE,
     MIN_PREQUENTIAL_RANGES,
     MIN_WEIGHT,
+    MOTION_ACCEL_DENSITY_START,
     NORMAL_MAD_SCALE,
     ONLINE_ANCHOR_BIAS_SIGMA,
     ONLINE_COMMON_BIAS_SIGMA,
@@ -370,14 +371,21 @@ class GraphBuilder:
         IMU without IMU and wheels, the configured (inflated) IMU noise with an IMU, else
         None (wheels only)."""
         if self.cv_motion:
-            return imu_mod.motion_prior_params(self.g.motion_accel_density,
-                                               self.g.motion_turn_density,
-                                               self.cfg.imu.gravity)
+            return self.motion_prior_params(1.0)
         if self.has_imu:
             return imu_mod.preintegration_params(self.cfg.imu, self.cfg.extrinsics,
                                                  self.imu_inflation,
                                                  1.0 if self.gyro_hold else None)
         return None
+
+    def motion_prior_params(self, factor: float) -> gtsam.PreintegrationCombinedParams:
+        """The constant-velocity prior's virtual IMU (`imu.motion_prior_params`) at
+        `factor` times the configured acceleration density (MOTION_ACCEL_DENSITY_START
+        where `graph.motion_accel_density = "auto"`: batch fits it, `noise_fit`)."""
+        density = self.g.motion_accel_density
+        density = MOTION_ACCEL_DENSITY_START if density == "auto" else float(density)
+        return imu_mod.motion_prior_params(factor * density, self.g.motion_turn_density,
+                                           self.cfg.imu.gravity)
 
     def set_imu_inflation(self, inflation: float) -> None:
         """The IMU factors built from now on (and the predictions) take the `[imu]` noise
@@ -467,7 +475,10 @@ class GraphBuilder:
         # roll, pitch (rad) and z (m) sigmas of the wheel factor
         self.wheel_records = WheelRecords(
             out_of_plane=(0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2))
-        self.imu_records = imu_mod.ImuRecords()  # the IMU factors (a real IMU's only)
+        # the IMU factors, or the constant-velocity prior's (its virtual IMU's noise fitted
+        # alike, `noise_fit.imu_family`)
+        self.imu_records = imu_mod.ImuRecords(
+            params_at=self.motion_prior_params if self.cv_motion else None)
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         # indices in `full_graph` of the external-pose factors (`pose_factor`)
         self.pose_index: list[int] = []
@@ -843,7 +854,7 @@ class GraphBuilder:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)
             pim = imu_mod.preintegrate(self.pim_params, bias_a, gy, ac, dts)
-            if self.record and self.full_graph is not None and not self.cv_motion:
+            if self.record and self.full_graph is not None:
                 self.imu_records.add(ka, self.full_graph.size() + inc.graph.size(), bias_a,
                                      gy, ac, dts)  # pushed by `_record` below
             motion.append(gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim))

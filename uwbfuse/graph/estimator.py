@@ -52,6 +52,7 @@ from uwbfuse.constants import (
     BACKDATE_YAW_DRIFT,
     BATCH_CHUNK,
     LIVE_LATENCY_KEPT,
+    MOTION_ACCEL_DENSITY_START,
     ONLINE_WINDOW_S,
     PROVISIONAL_FIX_S,
     REVIEW_CHANGE,
@@ -831,10 +832,14 @@ class GraphEstimator(EstimatorBase):
         """`graph.imu_noise_inflation = "auto"`: the offline solve's IMU factors at the
         inflation of greatest evidence over the whole log (`noise_fit.fit_imu_noise`,
         searched from the one the online pass used; its wheel factors as completed; its LM
-        from the wheel offset search's solution when there was one)."""
+        from the wheel offset search's solution when there was one). Without IMU and
+        wheels, `graph.motion_accel_density = "auto"`: the constant-velocity prior's
+        factors alike, at the acceleration density of greatest evidence."""
         b = self.builder
         assert b is not None
-        if self.cfg.graph.imu_noise_inflation != "auto" or not b.imu_records.k:
+        g = self.cfg.graph
+        auto = (g.motion_accel_density if b.cv_motion else g.imu_noise_inflation) == "auto"
+        if not auto or not b.imu_records.k:
             return
         graph, initial, rec = self.batch_inputs()
         win = self._evidence_windows()
@@ -1044,7 +1049,10 @@ class GraphEstimator(EstimatorBase):
             if self._wheel_noise is not None:
                 out[key]["wheel_noise_factor"] = {"v": self._wheel_noise[0],
                                                   "omega": self._wheel_noise[1]}
-            if self._imu_inflation is not None:
+            if self._imu_inflation is not None and b.cv_motion:
+                out[key]["motion_accel_density"] = (
+                    self._imu_inflation * MOTION_ACCEL_DENSITY_START)
+            elif self._imu_inflation is not None:
                 out[key]["imu_noise_inflation"] = self._imu_inflation
             if self._windows is not None:  # share of keyframes the fits looked at
                 out[key]["evidence_share"] = round(float(self._windows.keep.mean()), 4)

@@ -131,8 +131,7 @@ class EvidenceWindows:
         if self.whole or not imu.k:
             return imu
         sel = np.flatnonzero(self._pair_inside(np.asarray(imu.k))).tolist()
-        return ImuRecords([imu.k[i] for i in sel], [imu.index[i] for i in sel],
-                          [imu.bias[i] for i in sel], [imu.pieces[i] for i in sel], imu.parts)
+        return imu.selected(sel)
 
     def pose_index(self, index: list[int]) -> list[int]:
         """External-pose factor indices still in the windowed graph."""

@@ -10,6 +10,7 @@ The body frame of the factors is the base frame; `imu_in_base` is GTSAM's body_P
 from __future__ import annotations
 
 import bisect
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import gtsam
@@ -211,6 +212,10 @@ class ImuRecords:
     pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
     # (N, I) of each factor by its k, computed on demand (shared by `reindexed` copies)
     parts: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    # the preintegration parameters at a noise factor f, where the factors are not a real
+    # IMU's: the constant-velocity prior's virtual IMU (`GraphBuilder`); None: the
+    # configured IMU's (`preintegration_params`)
+    params_at: Callable[[float], gtsam.PreintegrationCombinedParams] | None = None
 
     def add(self, k: int, index: int, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray,
             accel: np.ndarray, dt: np.ndarray) -> None:
@@ -229,13 +234,22 @@ class ImuRecords:
     def reindexed(self, index: list[int]) -> ImuRecords:
         """The same factors at other indices (of another graph), sharing `parts`."""
         return ImuRecords(list(self.k), list(index), list(self.bias), list(self.pieces),
-                          self.parts)
+                          self.parts, self.params_at)
+
+    def selected(self, sel: list[int]) -> ImuRecords:
+        """The factors at positions `sel` of these records (sharing `parts`)."""
+        return ImuRecords([self.k[i] for i in sel], [self.index[i] for i in sel],
+                          [self.bias[i] for i in sel], [self.pieces[i] for i in sel],
+                          self.parts, self.params_at)
 
     def covariance_parts(self, cfg: ImuConfig, ext: Extrinsics) -> tuple[np.ndarray, np.ndarray]:
         """(N, I), each (n,15,15): the preintegrated covariance of every factor per unit
         f^2 of the configured noise, and that of the integration covariance alone (two
         preintegrations of each factor, at f = 1 and 2, once)."""
-        one, two = preintegration_params(cfg, ext, 1.0), preintegration_params(cfg, ext, 2.0)
+        if self.params_at is not None:
+            one, two = self.params_at(1.0), self.params_at(2.0)
+        else:
+            one, two = preintegration_params(cfg, ext, 1.0), preintegration_params(cfg, ext, 2.0)
         for k, b, (gy, ac, dt) in zip(self.k, self.bias, self.pieces, strict=True):
             if k not in self.parts:
                 c1 = preintegrate(one, b, gy, ac, dt).preintMeasCov()

@@ -39,6 +39,8 @@ from uwbfuse.config import Config
 from uwbfuse.constants import (
     IMU_INFLATION_MAX_LOG2,
     IMU_NOISE_TEST_NATS,
+    MOTION_NOISE_MAX_LOG2,
+    MOTION_NOISE_MIN_LOG2,
     NOISE_PRIOR_LOG2,
     NOISE_STEP,
     ONLINE_FIRST_S,
@@ -69,6 +71,9 @@ class NoiseFamily:
     size: int  # coordinates (factors fitted)
     max_log2: float
     test_nats: float
+    # log2 of the smallest factor: 0 for a sensor (loosen only, see the module docstring);
+    # below 0 for the constant-velocity prior, which is no sensor and may be held tighter
+    min_log2: float = 0.0
 
 
 def wheel_family(wheel: WheelRecords) -> NoiseFamily:
@@ -87,7 +92,10 @@ def wheel_family(wheel: WheelRecords) -> NoiseFamily:
 
 def imu_family(imu: ImuRecords, cfg: Config) -> NoiseFamily:
     """The IMU factors, their noise densities and bias random walks times f (their
-    preintegrated covariances f^2 N + I, `ImuRecords.covariance_parts`)."""
+    preintegrated covariances f^2 N + I, `ImuRecords.covariance_parts`); for the
+    constant-velocity prior's virtual IMU (`ImuRecords.params_at`), its acceleration
+    density times f, searched both ways (MOTION_NOISE_MIN_LOG2 .. MOTION_NOISE_MAX_LOG2):
+    how smoothly a tag moves is a property of the vehicle, not a sensor's noise floor."""
     n_part, i_part = imu.covariance_parts(cfg.imu, cfg.extrinsics)
 
     def apply(graph: gtsam.NonlinearFactorGraph, f: tuple[float, ...]) -> float:
@@ -96,6 +104,9 @@ def imu_family(imu: ImuRecords, cfg: Config) -> NoiseFamily:
             graph.replace(idx, factor)
         return 0.5 * float(np.sum(np.linalg.slogdet(cov)[1]))
 
+    if imu.params_at is not None:
+        return NoiseFamily("motion prior", apply, 1, MOTION_NOISE_MAX_LOG2, IMU_NOISE_TEST_NATS,
+                           MOTION_NOISE_MIN_LOG2)
     return NoiseFamily("imu", apply, 1, IMU_NOISE_MAX_LOG2, IMU_NOISE_TEST_NATS)
 
 
@@ -163,7 +174,7 @@ class _GridSearch:
                     while True:
                         cand = list(best)
                         cand[j] += sign * NOISE_STEP
-                        if not 0.0 <= cand[j] <= self.family.max_log2 or \
+                        if not self.family.min_log2 <= cand[j] <= self.family.max_log2 or \
                                 self.score(tuple(cand)) <= self.seen[best]:
                             break
                         best = tuple(cand)
@@ -184,7 +195,7 @@ class _GridSearch:
             curv = e0 - 2.0 * self.seen[best] + e2
             if curv < 0:
                 out[j] += 0.5 * NOISE_STEP * (e0 - e2) / curv
-        return np.clip(out, 0.0, self.family.max_log2)
+        return np.clip(out, self.family.min_log2, self.family.max_log2)
 
     def upper_end(self, best: tuple[float, ...]) -> float:
         """One factor: the largest (log2) whose evidence lies within `family.test_nats` of
@@ -281,15 +292,16 @@ def fit_imu_noise(
     if not imu.k or not len(rec["z"]):
         return 1.0
     graph = evidence_graph(cfg, base_graph, rec, scale, sigma, with_bias, pose_index)
-    out = fit_noise(graph, initial, imu_family(imu, cfg), cfg.graph.lm_max_iterations,
-                    (_grid_point(start),))
+    family = imu_family(imu, cfg)
+    out = fit_noise(graph, initial, family, cfg.graph.lm_max_iterations,
+                    (_grid_point(start, family),))
     return 1.0 if out is None else float(out[0])
 
 
-def _grid_point(inflation: float) -> float:
-    """The log2 grid point nearest `inflation`, within the IMU's grid."""
-    u = np.round(np.log2(max(inflation, 1.0)) / NOISE_STEP) * NOISE_STEP
-    return float(np.clip(u, 0.0, IMU_NOISE_MAX_LOG2))
+def _grid_point(inflation: float, family: NoiseFamily) -> float:
+    """The log2 grid point nearest `inflation`, within `family`'s grid."""
+    u = np.round(np.log2(inflation) / NOISE_STEP) * NOISE_STEP
+    return float(np.clip(u, family.min_log2, family.max_log2))
 
 
 # The online graph's IMU noise (causal): the same evidence over the newest
@@ -338,6 +350,7 @@ def fit_imu_window(
     rec = {"k": np.repeat(ka, n), "anchor": anchor, "z": z,
            "tag_in_kf": np.concatenate([r[2] for r in recent.ranges])}
     graph = with_robust_ranges(cfg, graph, rec, None, sigma, False)
-    out = fit_noise(graph, values, imu_family(recent.imu.reindexed(index), cfg),
-                    cfg.graph.lm_max_iterations, (_grid_point(start),), loosest=True)
+    family = imu_family(recent.imu.reindexed(index), cfg)
+    out = fit_noise(graph, values, family, cfg.graph.lm_max_iterations,
+                    (_grid_point(start, family),), loosest=True)
     return None if out is None else float(out[0])
