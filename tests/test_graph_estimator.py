@@ -430,6 +430,22 @@ def test_uwb_only_batch_fits_the_motion_prior_density():
     assert _ate(fitted.trajectory, log) < 0.8 * _ate(fixed.trajectory, log)
 
 
+def test_uwb_only_online_pass_fits_the_motion_prior_density_causally():
+    """Test that without IMU and wheels isam2 fits the constant-velocity prior's density as
+    it fits an IMU's noise online (over its newest keyframes, causally): the room's slow
+    robot gets a density below the start of 1 m/s^2/sqrt(Hz), and the online track is
+    better than at that start held fixed."""
+    sim = simulate_with_truth("room", 30.0, 0)
+    log = _drop(sim.log, "imu", "wheel")
+    fitted = estimate(log, Method.ISAM2, Config(), covariance=False)
+    online = fitted.report["online_motion_prior"]
+    assert online["fits"] and online["accel_density"] < 0.5, online
+    fixed = estimate(log, Method.ISAM2, Config(graph={"motion_accel_density": 1.0}),
+                     covariance=False)
+    assert "online_motion_prior" not in fixed.report
+    assert _ate(fitted.trajectory, log) < 0.8 * _ate(fixed.trajectory, log)
+
+
 def test_motion_prior_densities_set_how_smooth_a_uwb_only_track_is():
     """Test that `graph.motion_accel_density` and `motion_turn_density` reach the
     constant-velocity prior: a smaller acceleration density gives a smoother track, a

@@ -22,6 +22,7 @@ import copy
 import logging
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -349,17 +350,23 @@ class GraphBuilder:
         # the ranges hold the track) until the log has shown its noise (`noise_fit`);
         # without ranges nothing absolute tells the noise: the configured one
         setting = self.g.imu_noise_inflation
-        fit = setting == "auto" and "imu" in streams and "uwb" in streams and len(anchors) > 0
+        ranged = "uwb" in streams and len(anchors) > 0
+        fit = setting == "auto" and "imu" in streams and ranged
+        # without IMU and wheels the factor is on the constant-velocity prior's
+        # acceleration density (`motion_prior_params`), fitted alike from 1 (`auto`)
+        cv_fit = self.cv_motion and self.g.motion_accel_density == "auto" and ranged
         self.imu_inflation = (2.0 ** IMU_INFLATION_MAX_LOG2 if fit
-                              else 1.0 if setting == "auto" else float(setting))
+                              else 1.0 if setting == "auto" or self.cv_motion
+                              else float(setting))
         # with wheels, from one lag after the start until the first fit, the gyroscope's
         # white noise is held at its configured density (`_hold_gyro`); `gyro_hold`: still
         # to come (None: never or over)
         self.gyro_hold: bool | None = False if fit and self.has_wheel else None
         self.pim_params = self._preintegration_params()
         # the newest keyframes for the online IMU noise fit (`recent_s` s of them), or None
-        self.recent = (RecentMotion(max(round(recent_s * self.g.keyframe_rate), 1))
-                       if recent_s is not None and fit else None)
+        self.recent = (RecentMotion(max(round(recent_s * self.g.keyframe_rate), 1),
+                                    imu=imu_mod.ImuRecords(params_at=self._cv_params()))
+                       if recent_s is not None and (fit or cv_fit) else None)
         self._init_estimate(start)
         self._init_pending()
         self._init_records(record, seeding)
@@ -371,7 +378,7 @@ class GraphBuilder:
         IMU without IMU and wheels, the configured (inflated) IMU noise with an IMU, else
         None (wheels only)."""
         if self.cv_motion:
-            return self.motion_prior_params(1.0)
+            return self.motion_prior_params(self.imu_inflation)
         if self.has_imu:
             return imu_mod.preintegration_params(self.cfg.imu, self.cfg.extrinsics,
                                                  self.imu_inflation,
@@ -387,14 +394,19 @@ class GraphBuilder:
         return imu_mod.motion_prior_params(factor * density, self.g.motion_turn_density,
                                            self.cfg.imu.gravity)
 
+    def _cv_params(self) -> Callable[[float], gtsam.PreintegrationCombinedParams] | None:
+        """`motion_prior_params` for the records of the constant-velocity prior's factors
+        (`imu.ImuRecords.params_at`), None where the factors are a real IMU's."""
+        return self.motion_prior_params if self.cv_motion else None
+
     def set_imu_inflation(self, inflation: float) -> None:
         """The IMU factors built from now on (and the predictions) take the `[imu]` noise
-        times `inflation`, the gyroscope's white noise included (a real IMU only; the
-        constant-velocity prior keeps its own); ends `_hold_gyro`."""
+        times `inflation`, the gyroscope's white noise included; without IMU and wheels,
+        the constant-velocity prior's acceleration density times `inflation`; ends
+        `_hold_gyro`."""
         held = self.gyro_hold is not None
         self.gyro_hold = None
-        if self.cv_motion or not self.has_imu or (
-                inflation == self.imu_inflation and not held):
+        if not self.has_imu or (inflation == self.imu_inflation and not held):
             return
         self.imu_inflation = float(inflation)
         self.pim_params = self._preintegration_params()
@@ -477,8 +489,7 @@ class GraphBuilder:
             out_of_plane=(0.01, 0.01, 0.01) if self.planar else (0.2, 0.2, 0.2))
         # the IMU factors, or the constant-velocity prior's (its virtual IMU's noise fitted
         # alike, `noise_fit.imu_family`)
-        self.imu_records = imu_mod.ImuRecords(
-            params_at=self.motion_prior_params if self.cv_motion else None)
+        self.imu_records = imu_mod.ImuRecords(params_at=self._cv_params())
         self.full_graph = gtsam.NonlinearFactorGraph() if record else None
         # indices in `full_graph` of the external-pose factors (`pose_factor`)
         self.pose_index: list[int] = []

@@ -290,7 +290,8 @@ class GraphEstimator(EstimatorBase):
     def _start(self, state: Any) -> None:
         self._init_t = int(state.t_ns)
         state = self._backdated(state)
-        auto_imu = self.cfg.graph.imu_noise_inflation == "auto"
+        g = self.cfg.graph
+        auto_imu = g.imu_noise_inflation == "auto" or g.motion_accel_density == "auto"
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
@@ -1089,6 +1090,11 @@ class GraphEstimator(EstimatorBase):
         if b.has_imu and not b.cv_motion:
             out["online_imu_noise"] = {"inflation": self._online_imu_inflation,
                                        "fits": self._imu_fits}
+        elif b.cv_motion and b.recent is not None and self._online_imu_inflation is not None:
+            # the factor on the constant-velocity prior's density (`fits`: factors too)
+            out["online_motion_prior"] = {
+                "accel_density": self._online_imu_inflation * MOTION_ACCEL_DENSITY_START,
+                "fits": self._imu_fits}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out
