@@ -230,10 +230,11 @@ class GraphConfig(_Section):
     motion_accel_density: float | Literal["auto"] = Field(
         "auto", description="logs with neither IMU nor wheels: white-noise acceleration "
         "of the constant-velocity motion prior between keyframes, m/s^2/sqrt(Hz); a number "
-        "is used as given; auto = estimated from the log: the online graph uses 1 (a walker "
-        "or pushed trolley changes its speed by about 1 m/s within a second), batch and "
-        "isam2-smoothed's final smoothing the density of greatest Laplace evidence, 1/64 .. "
-        "16 times that, where a likelihood-ratio test rejects 1"
+        "is used as given; auto = estimated from the log, 1/64 .. 16 times 1 (a walker or "
+        "pushed trolley changes its speed by about 1 m/s within a second): batch and "
+        "isam2-smoothed's final smoothing take the density of greatest Laplace evidence "
+        "where a likelihood-ratio test rejects the online one; the online graph starts at "
+        "1 and fits it over its newest keyframes as it fits the IMU noise (`auto`)"
     )
     motion_turn_density: float = Field(
         0.5, gt=0, allow_inf_nan=False,
