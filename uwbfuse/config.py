@@ -233,8 +233,8 @@ class GraphConfig(_Section):
         "is used as given; auto = estimated from the log, 1/64 .. 16 times 1 (a walker or "
         "pushed trolley changes its speed by about 1 m/s within a second): batch and "
         "isam2-smoothed's final smoothing take the density of greatest Laplace evidence "
-        "where a likelihood-ratio test rejects the online one; the online graph starts at "
-        "1 and fits it over its newest keyframes as it fits the IMU noise (`auto`)"
+        "where a likelihood-ratio test rejects 1 (searched from the online one); the online "
+        "graph starts at 1 and fits it over its newest keyframes as it fits the IMU noise"
     )
     motion_turn_density: float = Field(
         0.5, gt=0, allow_inf_nan=False,
