@@ -319,7 +319,8 @@ class GraphBuilder:
     ) -> None:
         """Declares the builder's state, group by group (`_init_*`); every attribute the
         smoother reads is set here once. `recent_s`: keep the newest seconds of motion
-        factors and ranges for the online IMU noise fit (`recent`)."""
+        factors and ranges for the online IMU noise fit (`recent`), where one runs (the
+        IMU noise or the constant-velocity prior's density `auto`, with ranges)."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
@@ -385,14 +386,19 @@ class GraphBuilder:
                                                  1.0 if self.gyro_hold else None)
         return None
 
+    def motion_accel_density(self, factor: float) -> float:
+        """The constant-velocity prior's acceleration density (m/s^2/sqrt(Hz)) at `factor`
+        times the configured one (MOTION_ACCEL_DENSITY_START where `graph.
+        motion_accel_density = "auto"`: the online pass and batch fit the factor,
+        `noise_fit`)."""
+        density = self.g.motion_accel_density
+        return factor * (MOTION_ACCEL_DENSITY_START if density == "auto" else float(density))
+
     def motion_prior_params(self, factor: float) -> gtsam.PreintegrationCombinedParams:
         """The constant-velocity prior's virtual IMU (`imu.motion_prior_params`) at
-        `factor` times the configured acceleration density (MOTION_ACCEL_DENSITY_START
-        where `graph.motion_accel_density = "auto"`: batch fits it, `noise_fit`)."""
-        density = self.g.motion_accel_density
-        density = MOTION_ACCEL_DENSITY_START if density == "auto" else float(density)
-        return imu_mod.motion_prior_params(factor * density, self.g.motion_turn_density,
-                                           self.cfg.imu.gravity)
+        `motion_accel_density(factor)`."""
+        return imu_mod.motion_prior_params(self.motion_accel_density(factor),
+                                           self.g.motion_turn_density, self.cfg.imu.gravity)
 
     def _cv_params(self) -> Callable[[float], gtsam.PreintegrationCombinedParams] | None:
         """`motion_prior_params` for the records of the constant-velocity prior's factors

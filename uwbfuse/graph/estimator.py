@@ -52,7 +52,6 @@ from uwbfuse.constants import (
     BACKDATE_YAW_DRIFT,
     BATCH_CHUNK,
     LIVE_LATENCY_KEPT,
-    MOTION_ACCEL_DENSITY_START,
     ONLINE_WINDOW_S,
     PROVISIONAL_FIX_S,
     REVIEW_CHANGE,
@@ -290,12 +289,10 @@ class GraphEstimator(EstimatorBase):
     def _start(self, state: Any) -> None:
         self._init_t = int(state.t_ns)
         state = self._backdated(state)
-        g = self.cfg.graph
-        auto_imu = g.imu_noise_inflation == "auto" or g.motion_accel_density == "auto"
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
-            recent_s=ONLINE_WINDOW_S if auto_imu else None,
+            recent_s=ONLINE_WINDOW_S,
         )
         self._online_imu_inflation = self.builder.imu_inflation
         self.builder.use_priors(self._range_priors)
@@ -1051,8 +1048,8 @@ class GraphEstimator(EstimatorBase):
                 out[key]["wheel_noise_factor"] = {"v": self._wheel_noise[0],
                                                   "omega": self._wheel_noise[1]}
             if self._imu_inflation is not None and b.cv_motion:
-                out[key]["motion_accel_density"] = (
-                    self._imu_inflation * MOTION_ACCEL_DENSITY_START)
+                out[key]["motion_accel_density"] = b.motion_accel_density(
+                    self._imu_inflation)
             elif self._imu_inflation is not None:
                 out[key]["imu_noise_inflation"] = self._imu_inflation
             if self._windows is not None:  # share of keyframes the fits looked at
@@ -1093,7 +1090,7 @@ class GraphEstimator(EstimatorBase):
         elif b.cv_motion and b.recent is not None and self._online_imu_inflation is not None:
             # the factor on the constant-velocity prior's density (`fits`: factors too)
             out["online_motion_prior"] = {
-                "accel_density": self._online_imu_inflation * MOTION_ACCEL_DENSITY_START,
+                "accel_density": b.motion_accel_density(self._online_imu_inflation),
                 "fits": self._imu_fits}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
