@@ -522,6 +522,7 @@ class GraphBuilder:
         self._sc_num = np.zeros(m)
         self._sc_den = np.zeros(m)
         self._sc_n = np.zeros(m)
+        self._sc_info = np.zeros(m)  # sum(w h^2) of every step so far (m^2): `_update_scale`
 
     def _init_online_choice(self) -> None:
         """Range bookkeeping (dropped, repeated, jumps) and the online range-model choice's
@@ -1096,18 +1097,25 @@ class GraphBuilder:
         return out
 
     def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:
-        """Running per-anchor scale fit from LOS-weighted residuals (prior: range_scale_sigma).
+        """Recursive least squares of each anchor's range scale error k from LOS-weighted
+        residuals r (m) at predicted distances h (m), the start's k as prior mean
+        (`range_scale_sigma`).
 
-        Every SCALE_BLOCK ranges of an anchor, k <- (1 + k)(1 + delta) - 1 with
-        delta = sum(w r h) / (sum(w h^2) + sigma_los^2 / sigma_k^2): one Gauss-Newton step
-        of z / (1 + k) = d + b on the ranges since the last step.
+        Every SCALE_BLOCK ranges of an anchor, one Gauss-Newton step of z / (1 + k) = d + b
+        on the ranges since the last step, k <- (1 + k)(1 + delta) - 1 with
+        delta = sum(w r h) / (I + sigma_los^2 / sigma_k^2), where I = sum(w h^2) over every
+        step so far: a radio's scale is a constant, so each new block moves it by its share
+        of all the evidence (the gain falls as 1/n, a Kalman filter of a constant). Weighed
+        against its own block only, k followed the online track's errors from block to
+        block (docs/results.md, "The online range scale as a constant").
         """
         np.add.at(self._sc_num, a, w * r * h)
         np.add.at(self._sc_den, a, w * h * h)
         np.add.at(self._sc_n, a, 1.0)
         lam = (self.mixture.sigma_los / self.g.range_scale_sigma) ** 2
         for anc in np.flatnonzero(self._sc_n >= SCALE_BLOCK):
-            delta = self._sc_num[anc] / (self._sc_den[anc] + lam)
+            self._sc_info[anc] += self._sc_den[anc]
+            delta = self._sc_num[anc] / (self._sc_info[anc] + lam)
             k = (1.0 + self.scale[anc]) * (1.0 + delta) - 1.0
             self.scale[anc] = float(np.clip(k, -MAX_SCALE, MAX_SCALE))
             self._sc_num[anc] = self._sc_den[anc] = self._sc_n[anc] = 0.0
