@@ -32,11 +32,10 @@ def isam2_params() -> gtsam.ISAM2Params:
 
 
 class OnlineSmoother:
-    """A fixed-lag iSAM2 over keyframe increments, with extra iterations on demand."""
+    """A fixed-lag iSAM2 over keyframe increments."""
 
-    def __init__(self, lag_s: float, extra_iterations: int = 0) -> None:
+    def __init__(self, lag_s: float) -> None:
         self.lag_s = lag_s
-        self.extra_iterations = extra_iterations
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
 
     def update(self, inc: Increment) -> list[int]:
@@ -46,10 +45,7 @@ class OnlineSmoother:
         RuntimeError from GTSAM on failure.
         """
         self.smoother.update(inc.graph, inc.values, inc.stamps, inc.remove)
-        idx = list(self.smoother.getISAM2Result().getNewFactorsIndices())
-        for _ in range(self.extra_iterations):
-            self.smoother.update()
-        return idx
+        return list(self.smoother.getISAM2Result().getNewFactorsIndices())
 
     def pose(self, k: int) -> gtsam.Pose3:
         return self.smoother.calculateEstimatePose3(X(k))
