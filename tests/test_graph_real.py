@@ -115,6 +115,7 @@ def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
     assert fits and fits[-1]["inflation"] > 16.0
 
 
+@pytest.mark.slow  # the default suite's longest test (39 s)
 def test_plaza2_batch_calibrates_the_range_scale_on_default_config() -> None:
     """Test Plaza2 (radios ~7 % long) on default config: below 1.5 m, scales reported.
 
