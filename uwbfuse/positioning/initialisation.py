@@ -80,6 +80,10 @@ _Z_SIGMA_PLANAR = 0.5  # prior std of a wheeled base's height about init.base_he
 _Z_SIGMA_FREE = 1.5  # prior std of a free tag's start height about default_tag_z, m
 _PROVISIONAL_S = 0.5  # span of recent fixes for a provisional position, s
 _UWB_TRACK_S = 2.0  # UWB only: span of recent fixes fitted for position and track, s
+# UWB only: fewest fixes in that fit (position and velocity in 2-D: 4 unknowns, one spare);
+# a slow round robin (4 anchors at 1 Hz each) gives one fix per cycle, so the fit then
+# reaches back over the last this many fixes instead of the span
+_UWB_TRACK_MIN_FIXES = 5
 _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, calibration)
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
@@ -602,13 +606,18 @@ class Initialiser:
         ep = epochs_by_window(t, window_ns)
         if not len(ep):
             return np.zeros(0), np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        grid, _ = group_epochs(t, a, r, len(self.anchors), ep, window_ns)
+        grid, stamps = group_epochs(t, a, r, len(self.anchors), ep, window_ns)
         dim, tag_z = self._fix_dim()
         fx = multilaterate(
             self.anchors.positions, grid, dim=dim, tag_z=tag_z, sigma=self._range_sigma(),
             kernel=self.config.uwb.robust_kernel, threshold=self.config.uwb.kernel_threshold,
         )
-        return ep.astype(np.float64) / NS_PER_S, fx.position, fx.ok
+        # a fix is where the tag was while its ranges were taken: at their mean stamp, not
+        # at the epoch's end (a slow round robin spreads them over a second of motion)
+        got = stamps >= 0
+        n_got = np.maximum(got.sum(axis=1), 1)
+        t_fix = np.where(got, stamps - ep[:, None], 0).sum(axis=1) / n_got + ep
+        return t_fix.astype(np.float64) / NS_PER_S, fx.position, fx.ok
 
     def _static_fix(self, rng: tuple, t_from: int, t_to: int) -> tuple[F64, float] | None:
         """Robust fix of the tag from the ranges in [t_from, t_to): (pos (3,), sigma m)."""
@@ -876,14 +885,16 @@ class Initialiser:
         cfg = self.config.init
         tf, pf, okf = self._fixes(rng)
         tf, pf = tf[okf], pf[okf]
-        if len(tf) < 5:
+        if len(tf) < _UWB_TRACK_MIN_FIXES:
             self.last_reason = "too few UWB fixes"
             return None
         t_now = t_ns / NS_PER_S
-        sel = tf >= t_now - _UWB_TRACK_S
-        if np.count_nonzero(sel) < 5:
-            self.last_reason = "too few recent UWB fixes"
+        # the newest fix is recent: within the span, or two of the fixes' own periods
+        period = float(np.median(np.diff(tf[-_UWB_TRACK_MIN_FIXES:])))
+        if tf[-1] < t_now - max(_UWB_TRACK_S, 2.0 * period):
+            self.last_reason = "no recent UWB fix"
             return None
+        sel = tf >= min(t_now - _UWB_TRACK_S, tf[-_UWB_TRACK_MIN_FIXES])
         ts, ps = tf[sel] - t_now, pf[sel]
         # Robust straight-line fit p(t) = p + v t over the recent fixes (IRLS, Huber).
         a_mat = np.column_stack([np.ones_like(ts), ts])
@@ -897,7 +908,8 @@ class Initialiser:
         p_now, v = coef[0], coef[1]
         resid = ps - a_mat @ coef
         s2 = float(np.sum((w[:, None] * resid[:, :2]) ** 2) / max(2 * len(ts) - 4, 1))
-        cov_v = s2 * np.linalg.inv(a_mat.T @ (a_mat * (w**2)[:, None]))[1, 1]
+        cov_pv = s2 * np.linalg.inv(a_mat.T @ (a_mat * (w**2)[:, None]))
+        cov_v = cov_pv[1, 1]
         speed = float(np.linalg.norm(v[:2]))
         moved = speed * (ts[-1] - ts[0])
         since_first = t_now - tf[0]
@@ -917,7 +929,10 @@ class Initialiser:
         rz = rot_z(yaw)
         vel = np.array([v[0], v[1], 0.0 if self.planar else v[2]])
         pos = p_now - rz @ self.lever
-        pos_sigma = math.sqrt(s2 / max(len(ts), 1) * 2) + 0.0
+        # the line's position at t_now (its intercept: the fixes' times count from t_now),
+        # std over both horizontal axes: it grows as t_now lies past the fixes (a slow
+        # round robin's newest fix is a second old)
+        pos_sigma = math.sqrt(2.0 * cov_pv[0, 0])
         self.last_reason = "initialised (UWB only)"
         return InitialState(
             t_ns=int(t_ns), position=pos, R_map_base=rz, velocity=vel,
