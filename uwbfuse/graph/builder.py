@@ -67,7 +67,7 @@ from uwbfuse.graph.wheel import (
     se2_to_pose3,
 )
 from uwbfuse.nlos import NlosModel, hmm_filter, jump_log_likelihoods, residual_jumps_by_anchor
-from uwbfuse.positioning.initialisation import range_scale_applies
+from uwbfuse.positioning.initialisation import applied_lever, range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.start import anchors_observe_height, planar_height
 from uwbfuse.streams import NS_PER_S, AnchorMap
@@ -339,7 +339,7 @@ class GraphBuilder:
         self.start = start
         self.imu = imu
         self.wheel = wheel
-        self.tag = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        self.tag = applied_lever(config.extrinsics.tag_in_base, frozenset(streams))
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
         self.z0 = planar_height(anchors, float(start.position[2]))

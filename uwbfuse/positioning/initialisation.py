@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,6 +88,18 @@ _SCALE_SIGMA = 0.1  # prior std of the common range scale error (radio clock, ca
 _MAX_MAD_REL = 0.03  # consistency: robust residual spread allowed, fraction of median range
 RIVAL_MARGIN = 9.0  # chi-square by which the best start solution must beat a rival yaw (3 sigma)
 RIVAL_SEPARATION = math.radians(20.0)  # rad: yaw minima closer than this are one basin
+
+
+def applied_lever(tag_in_base: Sequence[float], streams: frozenset[str]) -> F64:
+    """The tag antenna's lever arm (m, base frame) the start and the graph apply: all of
+    `tag_in_base` where a sensor tells the heading (IMU, wheels or external poses); without
+    one its height only. The horizontal part would turn with a heading nothing measures
+    (the ranges see it only through the lever itself), and the base's best estimate is then
+    the tag's own position, the lever's mean over an unknown heading."""
+    lever = np.asarray(tag_in_base, dtype=np.float64).copy()
+    if not streams & {"imu", "wheel", "pose"}:
+        lever[:2] = 0.0
+    return lever
 
 
 def range_scale_applies(k: float, anchors: AnchorMap, position: np.ndarray) -> bool:
@@ -357,7 +369,7 @@ class Initialiser:
         self.has_uwb = "uwb" in self.streams and anchors is not None and len(anchors) > 0
         self.planar = self.has_wheel
         self.estimate_range_bias = estimate_range_bias
-        self.lever = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
+        self.lever = applied_lever(config.extrinsics.tag_in_base, self.streams)
         q = config.extrinsics.imu_in_base[3:]
         self.R_base_imu = Rotation.from_quat(q).as_matrix()
         self._imu: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
