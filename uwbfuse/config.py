@@ -99,7 +99,10 @@ class RobustKernel(StrEnum):
 
 class Extrinsics(_Section):
     tag_in_base: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="UWB antenna position in the base frame, metres"
+        (0.0, 0.0, 0.0), description="UWB antenna position in the base frame, metres; "
+        "a log with neither IMU, wheels nor poses measures no heading, so the graph and its "
+        "start apply the height only (the base is reported at the tag); wls turns the "
+        "horizontal part by the track direction"
     )
     imu_in_base: tuple[float, float, float, float, float, float, float] = Field(
         (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
