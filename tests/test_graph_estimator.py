@@ -719,3 +719,33 @@ def test_isam2_calibrates_no_nlos_excess_into_the_range_offsets():
     # 0.13-0.16 m when classified against the whole estimate)
     bias = [v["bias_m"] for v in res.report["anchors"].values()]
     assert max(bias) < 0.1
+
+
+def test_keyframes_per_update_solves_every_keyframe_only_under_an_imu_alone():
+    """Test `graph.update_every = "auto"`: 1 keyframe per iSAM2 update for isam2 where an
+    IMU without wheels predicts between updates, 3 with wheels, without IMU and for
+    isam2-smoothed's pass, and a number as set."""
+    from uwbfuse.config import GraphConfig
+    from uwbfuse.graph.estimator import keyframes_per_update
+
+    auto, isam2 = GraphConfig(), Method.ISAM2
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu"}), isam2) == 1
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "pose"}), isam2) == 1
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "wheel"}), isam2) == 3
+    assert keyframes_per_update(auto, frozenset({"uwb"}), isam2) == 3
+    smoothed = Method.ISAM2_SMOOTHED  # outputs its refit: its pass keeps 3
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu"}), smoothed) == 3
+    every2 = GraphConfig(update_every=2)
+    assert keyframes_per_update(every2, frozenset({"uwb", "imu"}), smoothed) == 2
+    with pytest.raises(ValueError):
+        GraphConfig(update_every=0)
+
+
+def test_imu_and_uwb_without_wheels_gain_from_solving_every_keyframe():
+    """Test that on an IMU + UWB log (no wheels) the default (every keyframe solved) beats
+    three keyframes per update, whose output in between is an IMU prediction from the
+    newest solved keyframe (measured, room seed 0, 60 s: 0.067 against 0.136 m)."""
+    log = _drop(simulate("room", 60.0, 0), "wheel")
+    auto = estimate(log, Method.ISAM2, Config(), covariance=False)
+    three = estimate(log, Method.ISAM2, Config(graph={"update_every": 3}), covariance=False)
+    assert _ate(auto.trajectory, log) < 0.7 * _ate(three.trajectory, log)

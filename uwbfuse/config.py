@@ -256,9 +256,11 @@ class GraphConfig(_Section):
         "evidence over its last 30 s does not reject (again each time the graph's age has "
         "doubled); logs without ranges keep the [imu] figures"
     )
-    update_every: int = Field(
-        3, ge=1, description="keyframes per iSAM2 update (between updates the output is "
-        "the odometry/IMU prediction from the newest solved keyframe)"
+    update_every: int | Literal["auto"] = Field(
+        "auto", description="keyframes per iSAM2 update (between updates the output is "
+        "the odometry/IMU prediction from the newest solved keyframe): auto = 1 for isam2 "
+        "where an IMU without wheel odometry predicts (double integration drifts by "
+        "centimetres over 0.3 s), else 3"
     )
     start_backdate: float = Field(
         0.0, ge=0, description="logs with wheels or an IMU: the graph's first keyframe is "
@@ -289,6 +291,13 @@ class GraphConfig(_Section):
         "biases hold it within the smaller of this and 0.02 m, unless it is set above the "
         "default: anchors known to differ by more)"
     )
+    @field_validator("update_every")
+    @classmethod
+    def _positive_count(cls, v: int | str) -> int | str:
+        if not isinstance(v, str) and v < 1:
+            raise ValueError(f"must be a positive integer or 'auto', got {v}")
+        return v
+
     @field_validator("imu_noise_inflation", "motion_accel_density")
     @classmethod
     def _positive_inflation(cls, v: float | str) -> float | str:

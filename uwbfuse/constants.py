@@ -377,6 +377,11 @@ PREQUENTIAL_Z = 3.0
 # keyframes per iSAM2 update in batch's seeding pass: 1 s at 10 Hz; it needs no per-epoch
 # answer, so fewer, larger updates (work bound)
 BATCH_CHUNK = 10
+# keyframes per isam2 update under `graph.update_every = "auto"` unless an IMU alone
+# predicts between updates (a work bound): wheel odometry predicts to millimetres over 0.3 s
+# at 10 Hz; without IMU or wheels the constant-velocity graph solved at every keyframe
+# turned iSAM2 indefinite on sparse ranges (43 re-anchors in 40 s at 4 ranges/s)
+PREDICTED_UPDATE_EVERY = 3
 # s: younger ranges keep their insertion class: a review weighs the ranges after a range, and
 # 0.5 s brings ~5 more of its anchor (10 Hz) and the smoothed keyframes on both sides
 REVIEW_MIN_AGE_S = 0.5
@@ -385,8 +390,9 @@ REVIEW_SEARCH = True
 # nats: log-likelihood gain of a better LOS/NLOS assignment in the review's search; chosen
 # from simulated results, not derived (docs/results.md, "still chosen from results")
 SEARCH_SWITCH_NATS = 10.0
-# ... in this many consecutive reviews before it is adopted: 0.9 s (3 updates of 3 keyframes),
-# about one NLOS segment ([nlos] segment, 1 s), not one update's noise
+# ... in this many consecutive reviews before it is adopted: 0.9 s at 3 keyframes per update
+# (with wheels), about one NLOS segment ([nlos] segment, 1 s), 0.3 s at 1; not one
+# update's noise
 SEARCH_PERSIST = 3
 # s: ranges this close to leaving the lag window are not reviewed: a guard beyond the next
 # update's span, 5 keyframes (10 % of the 5 s lag) the smoother is not about to marginalise

@@ -22,8 +22,9 @@ EM step.
   while streaming, range factors rebuilt per EM round), solved by Levenberg-Marquardt with
   NLOS EM, range model, range scales and offsets chosen and fitted over the whole log,
   from the keyframe estimates as they left the fixed-lag window (`offline.solve`).
-  isam2-smoothed smooths its own online pass (the one isam2 runs: `graph.update_every`,
-  anchor offsets held as online); the online pass of `batch` updates iSAM2 once per
+  isam2-smoothed smooths its own online pass (the one isam2 runs: anchor offsets held as
+  online; under `graph.update_every = "auto"` three keyframes per update even where isam2
+  solves every keyframe, `keyframes_per_update`); the online pass of `batch` updates iSAM2 once per
   `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it only seeds LM).
   Smoothing only within the lag left each keyframe with the range scale, offsets and
   LOS/NLOS classes of its window (docs/results.md, "isam2-smoothed: the whole graph").
@@ -47,12 +48,13 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from uwbfuse.config import Config
+from uwbfuse.config import Config, GraphConfig
 from uwbfuse.constants import (
     BACKDATE_YAW_DRIFT,
     BATCH_CHUNK,
     LIVE_LATENCY_KEPT,
     ONLINE_WINDOW_S,
+    PREDICTED_UPDATE_EVERY,
     PROVISIONAL_FIX_S,
     REVIEW_CHANGE,
     REVIEW_MARGIN_S,
@@ -90,6 +92,20 @@ def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
     return np.array([q.x(), q.y(), q.z(), q.w()])
 
 
+def keyframes_per_update(graph: GraphConfig, streams: frozenset[str], method: Method) -> int:
+    """Keyframes per iSAM2 update of isam2 and isam2-smoothed's online pass:
+    `graph.update_every`, whose "auto" is 1 for isam2 where an IMU without wheels predicts
+    between updates (double integration drifts by centimetres over 0.3 s on a walker),
+    else PREDICTED_UPDATE_EVERY. isam2-smoothed outputs its whole-log refit, not the
+    per-epoch estimates, so its pass keeps PREDICTED_UPDATE_EVERY (seeded from passes
+    solved at every keyframe, its refit was worse on IMU + UWB warehouse logs:
+    docs/results.md, session 27)."""
+    if graph.update_every != "auto":
+        return int(graph.update_every)
+    imu_alone = "imu" in streams and "wheel" not in streams
+    return 1 if imu_alone and method is Method.ISAM2 else PREDICTED_UPDATE_EVERY
+
+
 class GraphEstimator(EstimatorBase):
     """Factor-graph estimator (see the module docstring). Implements `Estimator`."""
 
@@ -111,7 +127,8 @@ class GraphEstimator(EstimatorBase):
         self.builder: GraphBuilder | None = None
         self._range_priors: RangePriors | None = None  # the NLOS classifier's, if any
         self.smoother: OnlineSmoother | None = None
-        self._chunk = BATCH_CHUNK if method is Method.BATCH else config.graph.update_every
+        self._chunk = (BATCH_CHUNK if method is Method.BATCH
+                       else keyframes_per_update(config.graph, streams, method))
         self._pending: list[Increment] = []
         self._last_t: int | None = None
         self._all_steps: list[int] = []  # every step epoch (offline back-fill)
