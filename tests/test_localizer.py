@@ -218,3 +218,34 @@ def test_bad_arguments_are_one_line_errors() -> None:
         uwbfuse.Localizer()
     loc.add_range(7, 7475, 3.0)  # an integer id is its decimal text: unknown here
     assert loc.skipped[SKIP_UNKNOWN_ANCHOR] == 1
+
+
+def test_imu_and_uwb_without_wheels_sample_by_sample_equals_run(tmp_path: Path) -> None:
+    """test that a vehicle without wheels (IMU + UWB: isam2 solves every keyframe under
+    `graph.update_every = "auto"`) gets run's isam2 positions bit for bit when fed one
+    sample at a time with `sensors=("imu", "uwb")`"""
+    from dataclasses import replace
+
+    path = tmp_path / "imu_uwb.mcap"
+    write_contract_log(path, replace(simulate("warehouse", duration_s=20.0, seed=3), wheel=None))
+    run = run_log(path, Method.ISAM2, Config(), tum_out=tmp_path / "a.tum")
+    # one iSAM2 update per keyframe
+    assert run.report["initialised"] is True
+    assert run.report["update_latency_ms"]["n"] == run.report["keyframes"]
+    log = read_log(path, Config())
+    assert log.imu is not None and log.ranges is not None and log.anchors is not None
+    assert log.wheel is None
+    loc = uwbfuse.Localizer(Config(), log.anchors, sensors=("imu", "uwb"), history_s=60.0)
+    ev = sorted([(int(t), 0, i) for i, t in enumerate(log.imu.t_ns.tolist())]
+                + [(int(t), 2, i) for i, t in enumerate(log.ranges.t_ns.tolist())])
+    for _, s, i in ev:
+        if s == 0:
+            loc.add_imu(log.imu.t_ns[i], log.imu.gyro[i], log.imu.accel[i])
+        else:
+            loc.add_range(log.ranges.t_ns[i], log.anchors.ids[int(log.ranges.anchor[i])],
+                          log.ranges.range[i])
+    loc.finish()
+    assert not loc.skipped
+    got = np.array([loc.pose(int(t)).position for t in run.trajectory.t_ns.tolist()])
+    np.testing.assert_array_equal(got, run.trajectory.position)
+    assert loc.report()["initialised"] is True
