@@ -24,9 +24,9 @@ EM step.
   from the keyframe estimates as they left the fixed-lag window (`offline.solve`).
   isam2-smoothed smooths its own online pass (the one isam2 runs: anchor offsets held as
   online; under `graph.update_every = "auto"` three keyframes per update even where isam2
-  solves every keyframe, `keyframes_per_update`); the online pass of `batch` updates iSAM2 once per
-  `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it only seeds LM).
-  Smoothing only within the lag left each keyframe with the range scale, offsets and
+  solves every keyframe, `keyframes_per_update`); the online pass of `batch` updates
+  iSAM2 once per `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it
+  only seeds LM). Smoothing only within the lag left each keyframe with the range scale, offsets and
   LOS/NLOS classes of its window (docs/results.md, "isam2-smoothed: the whole graph").
 Both offline outputs are carried back from the start to the first wheel sample by the
 wheel track, so they cover the log from the first motion.
@@ -94,16 +94,15 @@ def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
 
 def keyframes_per_update(graph: GraphConfig, streams: frozenset[str], method: Method) -> int:
     """Keyframes per iSAM2 update of isam2 and isam2-smoothed's online pass:
-    `graph.update_every`, whose "auto" is 1 for isam2 where an IMU without wheels predicts
-    between updates (double integration drifts by centimetres over 0.3 s on a walker),
-    else PREDICTED_UPDATE_EVERY. isam2-smoothed outputs its whole-log refit, not the
-    per-epoch estimates, so its pass keeps PREDICTED_UPDATE_EVERY (seeded from passes
-    solved at every keyframe, its refit was worse on IMU + UWB warehouse logs:
-    docs/results.md, session 27)."""
+    `graph.update_every`, whose "auto" is 1 where the method outputs its causal estimates
+    and an IMU without wheels predicts between updates (double integration drifts by
+    centimetres over 0.3 s on a walker), else PREDICTED_UPDATE_EVERY. A smoothed method
+    outputs its whole-log refit, which was worse seeded from passes solved at every
+    keyframe (IMU + UWB warehouse logs: docs/results.md, session 27)."""
     if graph.update_every != "auto":
         return int(graph.update_every)
     imu_alone = "imu" in streams and "wheel" not in streams
-    return 1 if imu_alone and method is Method.ISAM2 else PREDICTED_UPDATE_EVERY
+    return 1 if imu_alone and not method.spec.smoothed else PREDICTED_UPDATE_EVERY
 
 
 class GraphEstimator(EstimatorBase):
