@@ -722,21 +722,17 @@ def test_isam2_calibrates_no_nlos_excess_into_the_range_offsets():
 
 
 def test_keyframes_per_update_solves_every_keyframe_only_under_an_imu_alone():
-    """Test `graph.update_every = "auto"`: 1 keyframe per iSAM2 update for isam2 where an
-    IMU without wheels predicts between updates, 3 with wheels, without IMU and for
-    isam2-smoothed's pass, and a number as set."""
+    """Test `graph.update_every = "auto"`: 1 keyframe per iSAM2 update where an IMU without
+    wheels predicts between updates, 3 with wheels or without IMU, and a number as set."""
     from uwbfuse.config import GraphConfig
     from uwbfuse.graph.estimator import keyframes_per_update
 
-    auto, isam2 = GraphConfig(), Method.ISAM2
-    assert keyframes_per_update(auto, frozenset({"uwb", "imu"}), isam2) == 1
-    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "pose"}), isam2) == 1
-    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "wheel"}), isam2) == 3
-    assert keyframes_per_update(auto, frozenset({"uwb"}), isam2) == 3
-    smoothed = Method.ISAM2_SMOOTHED  # outputs its refit: its pass keeps 3
-    assert keyframes_per_update(auto, frozenset({"uwb", "imu"}), smoothed) == 3
-    every2 = GraphConfig(update_every=2)
-    assert keyframes_per_update(every2, frozenset({"uwb", "imu"}), smoothed) == 2
+    auto = GraphConfig()
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu"})) == 1
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "pose"})) == 1
+    assert keyframes_per_update(auto, frozenset({"uwb", "imu", "wheel"})) == 3
+    assert keyframes_per_update(auto, frozenset({"uwb"})) == 3
+    assert keyframes_per_update(GraphConfig(update_every=2), frozenset({"uwb", "imu"})) == 2
     with pytest.raises(ValueError):
         GraphConfig(update_every=0)
 

@@ -258,9 +258,9 @@ class GraphConfig(_Section):
     )
     update_every: int | Literal["auto"] = Field(
         "auto", description="keyframes per iSAM2 update (between updates the output is "
-        "the odometry/IMU prediction from the newest solved keyframe): auto = 1 for isam2 "
-        "where an IMU without wheel odometry predicts (double integration drifts by "
-        "centimetres over 0.3 s), else 3"
+        "the odometry/IMU prediction from the newest solved keyframe): auto = 1 where an "
+        "IMU without wheel odometry predicts (double integration drifts by centimetres over "
+        "0.3 s), else 3"
     )
     start_backdate: float = Field(
         0.0, ge=0, description="logs with wheels or an IMU: the graph's first keyframe is "

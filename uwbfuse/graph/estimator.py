@@ -22,11 +22,10 @@ EM step.
   while streaming, range factors rebuilt per EM round), solved by Levenberg-Marquardt with
   NLOS EM, range model, range scales and offsets chosen and fitted over the whole log,
   from the keyframe estimates as they left the fixed-lag window (`offline.solve`).
-  isam2-smoothed smooths its own online pass (the one isam2 runs: anchor offsets held as
-  online; under `graph.update_every = "auto"` three keyframes per update even where isam2
-  solves every keyframe, `keyframes_per_update`); the online pass of `batch` updates
-  iSAM2 once per `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it
-  only seeds LM). Smoothing only within the lag left each keyframe with the range scale, offsets and
+  isam2-smoothed smooths its own online pass (the one isam2 runs: `graph.update_every`,
+  anchor offsets held as online); the online pass of `batch` updates iSAM2 once per
+  `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it only seeds LM).
+  Smoothing only within the lag left each keyframe with the range scale, offsets and
   LOS/NLOS classes of its window (docs/results.md, "isam2-smoothed: the whole graph").
 Both offline outputs are carried back from the start to the first wheel sample by the
 wheel track, so they cover the log from the first motion.
@@ -92,17 +91,14 @@ def _quat_xyzw(pose: gtsam.Pose3) -> np.ndarray:
     return np.array([q.x(), q.y(), q.z(), q.w()])
 
 
-def keyframes_per_update(graph: GraphConfig, streams: frozenset[str], method: Method) -> int:
-    """Keyframes per iSAM2 update of isam2 and isam2-smoothed's online pass:
-    `graph.update_every`, whose "auto" is 1 where the method outputs its causal estimates
-    and an IMU without wheels predicts between updates (double integration drifts by
-    centimetres over 0.3 s on a walker), else PREDICTED_UPDATE_EVERY. A smoothed method
-    outputs its whole-log refit, which was worse seeded from passes solved at every
-    keyframe (IMU + UWB warehouse logs: docs/results.md, session 27)."""
+def keyframes_per_update(graph: GraphConfig, streams: frozenset[str]) -> int:
+    """Keyframes per iSAM2 update of the online pass (isam2, and the same run for
+    isam2-smoothed): `graph.update_every`, whose "auto" is 1 where an IMU without wheels
+    predicts between updates (double integration drifts by centimetres over 0.3 s on a
+    walker), else PREDICTED_UPDATE_EVERY."""
     if graph.update_every != "auto":
         return int(graph.update_every)
-    imu_alone = "imu" in streams and "wheel" not in streams
-    return 1 if imu_alone and not method.spec.smoothed else PREDICTED_UPDATE_EVERY
+    return 1 if "imu" in streams and "wheel" not in streams else PREDICTED_UPDATE_EVERY
 
 
 class GraphEstimator(EstimatorBase):
@@ -127,7 +123,7 @@ class GraphEstimator(EstimatorBase):
         self._range_priors: RangePriors | None = None  # the NLOS classifier's, if any
         self.smoother: OnlineSmoother | None = None
         self._chunk = (BATCH_CHUNK if method is Method.BATCH
-                       else keyframes_per_update(config.graph, streams, method))
+                       else keyframes_per_update(config.graph, streams))
         self._pending: list[Increment] = []
         self._last_t: int | None = None
         self._all_steps: list[int] = []  # every step epoch (offline back-fill)
