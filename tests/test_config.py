@@ -1,11 +1,12 @@
 # SPDX-License-Identifier: BSD-3-Clause
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.helpers import real
 from uwbfuse.cli import main
-from uwbfuse.config import Config, RobustKernel, dump_config, load_config
+from uwbfuse.config import Config, RobustKernel, UwbConfig, dump_config, load_config
 from uwbfuse.errors import ConfigError
 
 
@@ -172,3 +173,24 @@ def test_nlos_keys_of_earlier_releases_move_to_the_one_nlos_model(tmp_path, capl
     p.write_text("[graph]\nnlos_tau = 4.0\n[nlos]\ntau = 5.0\n")
     with pytest.raises(ConfigError, match="given twice"):
         load_config(p)
+
+
+@pytest.mark.parametrize("kernel", [k for k in RobustKernel if k is not RobustKernel.NONE])
+def test_kernel_threshold_follows_the_kernel(kernel: RobustKernel, tmp_path: Path) -> None:
+    """test that an unset [uwb] kernel_threshold is the kernel's own 95 %-efficiency value
+    (asymptotic efficiency under Gaussian residuals, from the weights the graph gives), not
+    Huber's for every kernel, and that a set one is kept"""
+    from uwbfuse.graph.noise import robust_weight
+
+    p = tmp_path / "k.toml"
+    p.write_text(f'[uwb]\nrobust_kernel = "{kernel.value}"\n')
+    c = load_config(p).uwb.kernel_threshold
+    e = np.linspace(-12.0, 12.0, 48001)
+    de = e[1] - e[0]
+    pdf = np.exp(-0.5 * e * e) / np.sqrt(2.0 * np.pi)
+    psi = robust_weight(kernel, c, e) * e
+    efficiency = (np.sum(np.gradient(psi, de) * pdf) * de) ** 2 / (np.sum(psi**2 * pdf) * de)
+    assert efficiency == pytest.approx(0.95, abs=2e-3)
+    p.write_text(f'[uwb]\nrobust_kernel = "{kernel.value}"\nkernel_threshold = 2.0\n')
+    assert load_config(p).uwb.kernel_threshold == 2.0
+    assert UwbConfig().kernel_threshold == 1.345  # the default kernel, Huber

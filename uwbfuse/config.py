@@ -22,6 +22,7 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 
 from uwbfuse.errors import ConfigError
@@ -97,6 +98,19 @@ class RobustKernel(StrEnum):
     NONE = "none"
 
 
+# whitened units: each kernel's threshold at 95 % asymptotic efficiency under Gaussian noise,
+# the textbook tuning (Huber 1.345, Cauchy 2.385, Tukey 4.685; DCS's is on the squared
+# residual, GTSAM's Phi); Huber's 1.345 under Tukey keeps 21 % efficiency and loses lock
+KERNEL_THRESHOLD_95 = {
+    RobustKernel.HUBER: 1.345,
+    RobustKernel.CAUCHY: 2.3849,
+    RobustKernel.TUKEY: 4.6851,
+    RobustKernel.DCS: 3.6035,
+    RobustKernel.GEMAN_MCCLURE: 3.7874,
+    RobustKernel.NONE: 1.345,  # read by nothing: no kernel
+}
+
+
 class Extrinsics(_Section):
     tag_in_base: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="UWB antenna position in the base frame, metres; "
@@ -152,8 +166,23 @@ class UwbConfig(_Section):
         RobustKernel.HUBER, description="huber | cauchy | tukey | dcs | geman_mcclure | none"
     )
     kernel_threshold: float = Field(
-        1.345, gt=0, description="robust-kernel threshold, in sigmas"
+        1.345, gt=0, description="robust-kernel threshold, in sigmas (DCS: on the squared "
+        "whitened residual); unset, the kernel's 95 %-efficiency value (huber 1.345, cauchy "
+        "2.3849, tukey 4.6851, dcs 3.6035, geman_mcclure 3.7874): drop this line when "
+        "changing the kernel"
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _kernel_threshold_default(cls, data: Any) -> Any:
+        """An unset `kernel_threshold` follows `robust_kernel` (KERNEL_THRESHOLD_95)."""
+        if isinstance(data, dict) and "kernel_threshold" not in data:
+            try:
+                kernel = RobustKernel(data.get("robust_kernel", RobustKernel.HUBER))
+            except (TypeError, ValueError):
+                return data  # the field's own validation names the bad kernel
+            return {**data, "kernel_threshold": KERNEL_THRESHOLD_95[kernel]}
+        return data
 
 
 class WheelConfig(_Section):

@@ -353,6 +353,9 @@ UNOBSERVED_COMMON_BIAS_SIGMA = 1e-3
 ONLINE_ANCHOR_BIAS_SIGMA = 0.02
 # m/s: a start state faster than this is not trusted (implausible for an indoor vehicle or walker)
 ONLINE_MAX_START_SPEED = 3.0
+# m/s: a solve that moves the newest keyframe faster has diverged (a Gauss-Newton step on a
+# gross range error that no robust kernel bounds), no indoor vehicle or walker moves so fast
+MAX_SOLVED_SPEED = 10.0
 # ranges of an anchor per online scale step (each adds its evidence to all before it): 20 at
 # 0.1 m noise pin a step to 0.1 / (sqrt(20) d), 0.2 % at d = 10 m, under the per-cent errors
 # sought; 2 s of one anchor at 10 Hz

@@ -52,6 +52,7 @@ from uwbfuse.constants import (
     BACKDATE_YAW_DRIFT,
     BATCH_CHUNK,
     LIVE_LATENCY_KEPT,
+    MAX_SOLVED_SPEED,
     ONLINE_WINDOW_S,
     PREDICTED_UPDATE_EVERY,
     PROVISIONAL_FIX_S,
@@ -341,6 +342,11 @@ class GraphEstimator(EstimatorBase):
         tic = time.perf_counter()
         try:
             idx = sm.update(inc)
+            diverged = self._diverged(sm, b)
+            if diverged:
+                self._reanchor(diverged, solved=False)
+                self._update_latency.append(time.perf_counter() - tic)
+                return
             for batch, slots in inc.reviews:
                 batch.factors = [[idx[p] for p in ps] for ps in slots]
                 self._reviews.append(batch)
@@ -360,6 +366,27 @@ class GraphEstimator(EstimatorBase):
         except (RuntimeError, ValueError) as exc:  # GTSAM raises both
             self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
+
+    @staticmethod
+    def _diverged(sm: OnlineSmoother, b: GraphBuilder) -> str:
+        """Why the update just solved cannot be a motion ('' when it can): the newest
+        keyframe's speed (its velocity state, else the step from the keyframe before)
+        above MAX_SOLVED_SPEED, the mark of a diverged Gauss-Newton step."""
+        k = b.k
+        try:
+            if b.has_imu:
+                speed = float(np.linalg.norm(sm.velocity(k)))
+            elif k < 1:
+                return ""
+            else:
+                dt = (b.time_of(k) - b.time_of(k - 1)) / NS_PER_S
+                step = sm.pose(k).translation() - sm.pose(k - 1).translation()
+                speed = float(np.linalg.norm(step)) / dt if dt > 0 else 0.0
+        except (RuntimeError, IndexError, ValueError):  # k - 1 not in this smoother
+            return ""
+        if not speed <= MAX_SOLVED_SPEED:  # NaN too
+            return f"the solve diverged: keyframe {k} at {speed:.3g} m/s"
+        return ""
 
     def _fit_imu_online(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """`graph.imu_noise_inflation = "auto"`: when one is due (`noise_fit.online_fit_due`),
@@ -607,8 +634,10 @@ class GraphEstimator(EstimatorBase):
             self._head_cov = None
         self._cov_latency.append(time.perf_counter() - tic)
 
-    def _reanchor(self, reason: str) -> None:
-        """Restart the smoother at the newest keyframe with loose priors (never raises)."""
+    def _reanchor(self, reason: str, solved: bool = True) -> None:
+        """Restart the smoother at the newest keyframe with loose priors (never raises).
+        `solved`: the failed smoother's estimates of the window still hold (not after a
+        diverged solve: then the window's keyframes are kept as predicted when built)."""
         b = self.builder
         assert b is not None
         k = b.k
@@ -619,7 +648,7 @@ class GraphEstimator(EstimatorBase):
         # still tell, else as predicted when they were built
         old = self.smoother
         for kk in range(self._saved_upto, k + 1):
-            if old is not None:
+            if old is not None and solved:
                 self._save_kf(old, b, kk)
             if kk not in self._kf_pose and kk in self._kf_pred:
                 self._kf_pose[kk] = self._kf_pred[kk]
