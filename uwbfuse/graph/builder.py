@@ -56,7 +56,12 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
-from uwbfuse.graph.uwb import huber_log_density, los_bias_key, nlos_state_factors, range_factor
+from uwbfuse.graph.uwb import (
+    los_bias_key,
+    nlos_state_factors,
+    range_factor,
+    robust_log_density,
+)
 from uwbfuse.graph.wheel import (
     FEW_QUERIES,
     WheelTrack,
@@ -1222,8 +1227,8 @@ class GraphBuilder:
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
             p = np.clip(prior, 1e-3, 1.0 - 1e-3)
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
-            lp_rob = np.logaddexp(huber_log_density(r_los, self.robust_sigma(),
-                                                    self.cfg.uwb.kernel_threshold), LOG_OUTLIER)
+            lp_rob = np.logaddexp(robust_log_density(r_los, self.robust_sigma(), self.cfg.uwb),
+                                  LOG_OUTLIER)
             self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
             d = lp_rob - lp_mix
             self._pq_n += n

@@ -59,11 +59,11 @@ from uwbfuse.graph.evidence_window import EvidenceWindows
 from uwbfuse.graph.keys import C, D, L, X, nlos_key
 from uwbfuse.graph.noise import range_noise, robust_weight
 from uwbfuse.graph.uwb import (
-    huber_log_density,
     los_bias_key,
     los_subset_search,
     nlos_state_factors,
     range_factor_keyed,
+    robust_log_density,
 )
 from uwbfuse.graph.wheel import between_factors
 from uwbfuse.nlos import NlosModel, hmm_smooth
@@ -619,8 +619,9 @@ def heldout_log_score(
     (the held-out stretches bridged by the motion factors), range calibration and error
     model. The mixture predicts a range's NLOS excess from the excess distribution its
     NLOS states show over the whole log (`fitted_excess`), and its NLOS probability from
-    the neighbouring training ranges; the robust model by its Huber density. Both keep the
-    mixture's gross-outlier floor.
+    the neighbouring training ranges; the robust model by its Huber density
+    (`robust_log_density`, whatever the kernel). Both keep the mixture's gross-outlier
+    floor.
 
     The NLOS states are the mixture's local free parameters, one per anchor and segment:
     carried into the held-out stretch, the nearest state predicts a range from its
@@ -634,12 +635,7 @@ def heldout_log_score(
     r_los = z - h - bias[a]
     mix = fit.mixture
     if fit.range_model == "robust" or fit.nlos_states is None:
-        if cfg.uwb.robust_kernel.value == "huber":
-            ll = huber_log_density(r_los, mix.sigma_los, cfg.uwb.kernel_threshold)
-        else:
-            ll = (-0.5 * (r_los / mix.sigma_los) ** 2 - math.log(mix.sigma_los)
-                  - 0.5 * math.log(2.0 * math.pi))
-        return np.logaddexp(ll, LOG_OUTLIER)
+        return np.logaddexp(robust_log_density(r_los, mix.sigma_los, cfg.uwb), LOG_OUTLIER)
     mu, var = fitted_excess(fit, train, bias, t0_ns)
     ll_l, ll_n = mix.log_likelihoods(r_los, r_los - mu, var)
     p = np.clip(_nearest_responsibility(train, test, fit.nlos_prob), 1e-3, 1.0 - 1e-3)

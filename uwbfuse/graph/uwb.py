@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from uwbfuse.config import UwbConfig
+from uwbfuse.config import KERNEL_THRESHOLD_95, RobustKernel, UwbConfig
 from uwbfuse.constants import EXCESS_FLOOR, SEARCH_MAX_ANCHORS, SEARCH_SHIFT_SIGMA
 from uwbfuse.graph.keys import D, L, X
 from uwbfuse.graph.noise import range_noise
@@ -42,6 +42,17 @@ def huber_log_density(r: np.ndarray, sigma: float, k: float) -> np.ndarray:
     rho = np.where(u <= k, 0.5 * u * u, k * u - 0.5 * k * k)
     z = math.sqrt(2.0 * math.pi) * math.erf(k / math.sqrt(2.0)) + 2.0 * math.exp(-0.5 * k * k) / k
     return -rho - math.log(sigma * z)
+
+
+def robust_log_density(r: np.ndarray, sigma: float, uwb: UwbConfig) -> np.ndarray:
+    """log predictive density of residuals r (m) under the robust range model at LOS
+    sigma `sigma` (m): the Huber density at the configured threshold under the Huber
+    kernel; under any other kernel (or none) at Huber's own 95 %-efficiency threshold, since
+    a redescending kernel's loss is bounded and no density (docs/results.md, "Other range
+    kernels on a real log")."""
+    k = (uwb.kernel_threshold if uwb.robust_kernel is RobustKernel.HUBER
+         else KERNEL_THRESHOLD_95[RobustKernel.HUBER])
+    return huber_log_density(r, sigma, k)
 
 
 def range_factor(
