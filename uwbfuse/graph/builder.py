@@ -816,17 +816,19 @@ class GraphBuilder:
         return inc
 
     def restart_priors(self, k: int, pose: gtsam.Pose3, vel: np.ndarray | None,
-                       bias: gtsam.imuBias.ConstantBias | None, anchors: bool = True
+                       bias: gtsam.imuBias.ConstantBias | None, anchors: bool = True,
+                       position_sigma: float = 0.5, velocity_sigma: float = 0.5,
                        ) -> gtsam.NonlinearFactorGraph:
         """Loose priors on keyframe k's state at `pose` (and `vel`, `bias` with an IMU)
         and (`anchors`) the anchors at their positions: where a smoother starts afresh
         (re-anchoring) or a window of the graph begins (the online IMU noise fit; batch's
-        evidence windows, whose graph holds the anchor priors already)."""
+        evidence windows, whose graph holds the anchor priors already). Position sigma m,
+        velocity sigma m/s (map frame)."""
         graph = gtsam.NonlinearFactorGraph()
         graph.add(gtsam.PriorFactorPose3(
-            X(k), pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (0.5, 0.5, 0.5)))))
+            X(k), pose, diagonal(pose_sigmas((0.05, 0.05, 0.2), (position_sigma,) * 3))))
         if self.has_imu and vel is not None and bias is not None:
-            graph.add(gtsam.PriorFactorVector(V(k), vel, diagonal([0.5] * 3)))
+            graph.add(gtsam.PriorFactorVector(V(k), vel, diagonal([velocity_sigma] * 3)))
             graph.add(gtsam.PriorFactorConstantBias(B(k), bias,
                                                     diagonal(self.bias_prior_sigmas())))
         for a in range(len(self.anchors) if anchors else 0):

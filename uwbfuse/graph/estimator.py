@@ -53,6 +53,7 @@ from uwbfuse.constants import (
     BATCH_CHUNK,
     LIVE_LATENCY_KEPT,
     MAX_SOLVED_SPEED,
+    ONLINE_MAX_START_SPEED,
     ONLINE_WINDOW_S,
     PREDICTED_UPDATE_EVERY,
     PROVISIONAL_FIX_S,
@@ -636,8 +637,12 @@ class GraphEstimator(EstimatorBase):
 
     def _reanchor(self, reason: str, solved: bool = True) -> None:
         """Restart the smoother at the newest keyframe with loose priors (never raises).
-        `solved`: the failed smoother's estimates of the window still hold (not after a
-        diverged solve: then the window's keyframes are kept as predicted when built)."""
+        `solved`: the failed smoother's estimates of the window still hold. After a
+        diverged solve they do not: the window's keyframes are kept as predicted when
+        built, and the newest is restarted as a lost track, its velocity zero within
+        ONLINE_MAX_START_SPEED (as unknown as at a start) and its position within the
+        anchor layout's radius of the prediction (the ranges, not a prediction that
+        ran away, then place it)."""
         b = self.builder
         assert b is not None
         k = b.k
@@ -661,11 +666,15 @@ class GraphEstimator(EstimatorBase):
         self._head_cov = None
         inc = Increment()
         s = b.stamp(k)
-        inc.graph.push_back(b.restart_priors(k, b.pose, b.vel, b.bias))
+        vel = b.vel if solved or b.vel is None else np.zeros(3)
+        inc.graph.push_back(
+            b.restart_priors(k, b.pose, b.vel, b.bias) if solved else
+            b.restart_priors(k, b.pose, vel, b.bias, position_sigma=self._layout_radius(),
+                             velocity_sigma=ONLINE_MAX_START_SPEED))
         inc.values.insert(X(k), b.pose)
         inc.stamps[X(k)] = s
         if b.has_imu:
-            inc.values.insert(V(k), b.vel)
+            inc.values.insert(V(k), vel)
             inc.values.insert(B(k), b.bias)
             inc.stamps[V(k)] = s
             inc.stamps[B(k)] = s
@@ -686,6 +695,12 @@ class GraphEstimator(EstimatorBase):
             self.smoother.update(inc)
         except RuntimeError as exc:  # pragma: no cover - priors on every key: cannot fail
             raise EstimatorError(f"graph re-anchoring failed: {exc}") from None
+
+    def _layout_radius(self) -> float:
+        """The anchors' largest distance from their centroid, m (at least the 0.5 m of
+        an ordinary re-anchor): how far the ranges reach to place a lost track."""
+        p = self.anchors.positions
+        return max(float(np.max(np.linalg.norm(p - p.mean(axis=0), axis=1))), 0.5)
 
     def forget_before(self, t_ns: int) -> None:
         """isam2 only (live use, `uwbfuse.Localizer`): drop what only the offline outputs
