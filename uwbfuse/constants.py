@@ -356,6 +356,9 @@ ONLINE_MAX_START_SPEED = 3.0
 # m/s: a solve that moves the newest keyframe faster has diverged (a Gauss-Newton step on a
 # gross range error that no robust kernel bounds), no indoor vehicle or walker moves so fast
 MAX_SOLVED_SPEED = 10.0
+# ns: the newest ranges a lost filter's restart fix may use: one round robin of slow radios
+# (4 anchors at 1 Hz); older ones place a walker metres from where it is
+MAX_LOST_FIX_NS = 2_000_000_000
 # ranges of an anchor per online scale step (each adds its evidence to all before it): 20 at
 # 0.1 m noise pin a step to 0.1 / (sqrt(20) d), 0.2 % at d = 10 m, under the per-cent errors
 # sought; 2 s of one anchor at 10 Hz

@@ -25,7 +25,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.constants import MAX_WINDOW_NS, REPEAT_NS
+from uwbfuse.constants import MAX_LOST_FIX_NS, MAX_SOLVED_SPEED, MAX_WINDOW_NS, REPEAT_NS
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.adaptive_noise import RangeNoise
@@ -265,6 +265,11 @@ class StreamingFilter(EstimatorBase):
         self._streak = 0
         self._last_reset: int | None = None
         self.stale = 0
+        # lost-track restarts (`_check_lost`): the newest ranges kept for a fix, and
+        # whether a restart still waits for one
+        self._lost_ranges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._lost = False
+        self.lost_restarts = 0
 
     # -- Estimator protocol -------------------------------------------------------------
 
@@ -398,6 +403,7 @@ class StreamingFilter(EstimatorBase):
                 self._count(ra, used)
             self.t_cur = t_ns
             self._trim_inputs()
+            self._check_lost(rt, ra, rr)
             return
         n_win = -(-(t_ns - self.t_cur) // MAX_WINDOW_NS)
         edges = self.t_cur + (t_ns - self.t_cur) * np.arange(1, n_win + 1) // n_win
@@ -418,6 +424,70 @@ class StreamingFilter(EstimatorBase):
                 self._apply_poses(t_b)
             r0, w0 = r1, w1
         self._trim_inputs()
+        self._check_lost(rt, ra, rr)
+
+    def _check_lost(self, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray) -> None:
+        """Lost-track restart (IMU-driven filters): a mechanisation that runs faster than
+        MAX_SOLVED_SPEED (m/s) has lost the track (an IMU alone through a range outage
+        runs away by tens of metres, and the innovation gate then rejects every range).
+        Its velocity restarts at zero; its position at a multilateration fix of the
+        newest round robin of ranges (`rt` ns, anchor `ra`, range `rr` m: this step's,
+        kept with the earlier ones of the last MAX_LOST_FIX_NS) as soon as one is found."""
+        if not self.has_imu or not len(self.anchor_pos):
+            return
+        if len(rt):
+            self._lost_ranges.append((rt, ra, rr))
+        t_cur = int(self.t_cur) if self.t_cur is not None else 0
+        while self._lost_ranges and self._lost_ranges[0][0][-1] < t_cur - MAX_LOST_FIX_NS:
+            self._lost_ranges.pop(0)
+        if not self._lost and not float(np.linalg.norm(self.velocity())) > MAX_SOLVED_SPEED:
+            return
+        if not self._lost:
+            self.lost_restarts += 1
+        self._lost = True
+        fix = self._lost_fix(t_cur)
+        self._restart_lost(fix)
+        self._lost = fix is None
+
+    def _lost_fix(self, t_ns: int) -> tuple[F64, F64] | None:
+        """Tag position (3,) m, map frame, and its covariance (3,3) m^2 from the newest
+        range of each anchor in one round robin before t_ns (robust multilateration), or
+        None where too few anchors answered."""
+        if not self._lost_ranges:
+            return None
+        from uwbfuse.positioning.multilateration import (
+            epoch_window_ns,
+            group_epochs,
+            multilaterate,
+        )
+
+        t, a, r = (np.concatenate(x) for x in zip(*self._lost_ranges, strict=True))
+        order = np.argsort(t, kind="stable")
+        t, a, r = t[order], a[order], r[order]
+        window = epoch_window_ns(t, a, MAX_WINDOW_NS, MAX_LOST_FIX_NS)
+        rows, _ = group_epochs(t, a, r, len(self.anchor_pos), np.array([t_ns]), window)
+        dim = 2 if self.planar else 3
+        if int(np.sum(np.isfinite(rows[0]))) < dim + 1:
+            return None
+        fixes = multilaterate(
+            self.anchor_pos, rows, dim=dim,
+            tag_z=self.z0 + float(self.tag_b[2]) if self.planar else None,
+            sigma=self.config.uwb.sigma, kernel=self.config.uwb.robust_kernel,
+            threshold=self.config.uwb.kernel_threshold)
+        if not bool(fixes.ok[0]):
+            return None
+        cov = np.eye(3) * self.config.uwb.sigma**2
+        cov[:dim, :dim] = fixes.cov[0]
+        return fixes.position[0], cov
+
+    def velocity(self) -> F64:
+        """The filter's velocity estimate, m/s, map frame (IMU-driven filters)."""
+        raise NotImplementedError
+
+    def _restart_lost(self, fix: tuple[F64, F64] | None) -> None:
+        """Restart a lost track: velocity zero (within ONLINE_MAX_START_SPEED), and the
+        position at `fix` (tag position m and covariance m^2, map frame) when there is one."""
+        raise NotImplementedError
 
     @property
     def provisional(self) -> bool:
@@ -458,6 +528,7 @@ class StreamingFilter(EstimatorBase):
             "ranges_used": {ids[i]: n for i, n in sorted(self.used.items())},
             "ranges_gated": {ids[i]: n for i, n in sorted(self.gated.items())},
             "gate_resets": self.gate_resets,
+            "lost_restarts": self.lost_restarts,
             "repeated_ranges": self.repeated,
             "poses_used": self.poses_used,
             "poses_gated": self.poses_gated,

@@ -64,6 +64,13 @@ class ConsiderCovariance:
         noise of variances qc (M,)."""
         self.p = propagate_with_biases(self.p, self.n, t, q, f, qc)
 
+    def restart(self, block: slice, cov: F64) -> None:
+        """The filter restarted the states `block` (within n) at covariance `cov`,
+        uncorrelated with the rest (a lost-track restart)."""
+        self.p[block, :] = 0.0
+        self.p[:, block] = 0.0
+        self.p[block, block] = cov
+
     def add(self, dp: F64) -> None:
         """Add dp (n,n) to the filter block (the filter's own covariance inflations)."""
         self.p[: self.n, : self.n] += dp

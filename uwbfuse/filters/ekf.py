@@ -74,6 +74,7 @@ from uwbfuse.constants import (
     INFLATE_CAP_VEL,
     MOVING_START_SPEED,
     MOVING_VELOCITY_SIGMA,
+    ONLINE_MAX_START_SPEED,
     STILL_VELOCITY_SIGMA,
     TILT_SIGMA_MOVING,
     TILT_SIGMA_STILL,
@@ -404,6 +405,26 @@ class ErrorStateEkf(StreamingFilter):
         self.R = so3_exp(dx[TH]) @ self.R
         self.bg = self.bg + dx[BG]
         self.ba = self.ba + dx[BA]
+
+    def velocity(self) -> F64:
+        return self.v
+
+    def _restart_lost(self, fix: tuple[F64, F64] | None) -> None:
+        """Lost-track restart (`StreamingFilter._check_lost`): the velocity zero within
+        ONLINE_MAX_START_SPEED and, with a fix, the base at the fix (through the lever arm)
+        within its covariance; their cross-covariances cleared."""
+        blocks = [(V_, np.eye(3) * ONLINE_MAX_START_SPEED**2)]
+        self.v = np.zeros(3)
+        if fix is not None:
+            tag, cov = fix
+            self.p = tag - self.R @ self.tag_b
+            blocks.append((P_, cov))
+        for sl, c in blocks:
+            self.P[sl, :] = 0.0
+            self.P[:, sl] = 0.0
+            self.P[sl, sl] = c
+            if self.consider is not None:  # the reported covariance restarts with it
+                self.consider.restart(sl, c)
 
     def _inflate(self, scale: float) -> None:
         """Divergence recovery: widen position (horizontal only when planar), velocity and
