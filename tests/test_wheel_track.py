@@ -40,6 +40,7 @@ def test_one_pair_covariance_equals_the_vectorised_one():
     starting on a sample and pairs past the track's ends."""
     rng = np.random.default_rng(12)
     t = np.cumsum(rng.integers(1, 60_000_000, 400)) + NS
+    t[200:] += 3 * NS  # a 3 s dropout: pieces that carry a twist beyond it
     v, w = rng.normal(0.8, 0.6, 400), rng.normal(0.0, 0.6, 400)
     w[::4] = 0.0
     track = WheelTrack()
@@ -52,6 +53,37 @@ def test_one_pair_covariance_equals_the_vectorised_one():
     for j in range(len(ta)):
         assert np.array_equal(cov[j], track.covariance(int(ta[j]), int(tb[j]), cfg))
     assert np.all(cov[:, 0, 0] > 0)
+
+
+def test_a_dropout_leaves_the_wheel_factor_little_to_say():
+    """Test that the covariance of a stretch the track carries on one twist through a
+    dropout grows with the dropout (the speed and turn rate may have changed unseen), that
+    within MAX_EXTRAPOLATION_S of a sample nothing is added, and that online (the dropout
+    not yet over) and offline (its end sample in) both see it."""
+    from uwbfuse.constants import MAX_EXTRAPOLATION_S, WHEEL_GUESS_ACCEL
+
+    cfg = WheelConfig(sigma_v=0.05, sigma_lateral=0.01, sigma_omega=0.05)
+    t = NS + np.arange(0, 10 * NS, 20_000_000)  # 50 Hz for 10 s
+    steady = WheelTrack()
+    steady.add(t, np.full(len(t), 0.5), np.zeros(len(t)))
+    gap = WheelTrack()
+    keep = (t < 4 * NS) | (t >= 9 * NS)  # silent from 4 to 9 s after the first sample
+    gap.add(t[keep], np.full(int(keep.sum()), 0.5), np.zeros(int(keep.sum())))
+    q0 = cfg.sigma_v**2
+    online = WheelTrack()  # the dropout still on: the track ends at 4 s
+    online.add(t[t < 4 * NS], np.full(int((t < 4 * NS).sum()), 0.5),
+               np.zeros(int((t < 4 * NS).sum())))
+    # a stretch within MAX_EXTRAPOLATION_S of the last sample: one piece of plain noise
+    a, b = 4 * NS + 10_000_000, 4 * NS + 300_000_000
+    assert online.covariance(a, b, cfg)[0, 0] == q0 * ((b - a) / NS) ** 2
+    a, b = 8 * NS, 8 * NS + 100_000_000  # 0.1 s, 4 s after the last sample
+    c_on = online.covariance(a, b, cfg)
+    reach = (b - (4 * NS - 20_000_000)) / NS - MAX_EXTRAPOLATION_S
+    assert c_on[0, 0] > 0.9 * (q0 + (WHEEL_GUESS_ACCEL * reach) ** 2) * 0.1**2
+    assert c_on[0, 0] > 100 * steady.covariance(a, b, cfg)[0, 0]
+    c_off = gap.covariance(4 * NS, 9 * NS, cfg)  # the dropout as one piece, offline
+    assert np.sqrt(c_off[0, 0]) > 3.0 and np.sqrt(c_off[2, 2]) > 5.0  # m, rad
+    assert np.sqrt(steady.covariance(4 * NS, 9 * NS, cfg)[0, 0]) < 0.3
 
 
 def test_few_samples_integrate_as_the_array_pass():

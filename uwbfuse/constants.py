@@ -176,6 +176,11 @@ MOTION_NOISE_MAX_LOG2 = 4.0
 # s: longest extrapolation past the last sample: 25 periods of 50 Hz wheels; an AGV's 0.3 m/s^2
 # unmodelled over 0.5 s is 4 cm (UWB noise); a longer silence is a dropout
 MAX_EXTRAPOLATION_S = 0.5
+# m/s^2, rad/s^2: what an AGV's speed and turn rate may change by per second unseen, where
+# the wheel track carries a twist through a dropout (0.3 m/s^2 above; a turn of 0.5 rad/s
+# begun within a second): a 5 s dropout's factor then says little, as it should
+WHEEL_GUESS_ACCEL = 0.3
+WHEEL_GUESS_YAW_ACCEL = 0.5
 # s: window of the motion test: 40 samples at 200 Hz for a std, short against an AGV's speed-up
 # (0.5 m/s at 0.3 m/s^2 takes 1.7 s), so a start shows within a fraction of a second
 MOTION_WINDOW_S = 0.2

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import WheelConfig
+from uwbfuse.constants import MAX_EXTRAPOLATION_S, WHEEL_GUESS_ACCEL, WHEEL_GUESS_YAW_ACCEL
 from uwbfuse.streams import NS_PER_S
 
 
@@ -314,11 +315,11 @@ class WheelTrack:
         if len(go) == 0:
             return out
         # P <- F P F^T + G Q G^T per piece (`_propagate_piece`), the pairs side by side
-        dx, dy, dth, tau = self._pieces(ta[go], tb[go])
+        dx, dy, dth, tau, guess = self._pieces(ta[go], tb[go])
         st = (np.zeros(len(go)),) * 7
         for i in range(tau.shape[1]):  # a padding piece (tau 0) leaves its pair as it is
             new = _propagate_piece(st, dx[:, i], dy[:, i], dth[:, i], tau[:, i], q,
-                                   np.cos, np.sin)
+                                   np.cos, np.sin, guess[:, i])
             st = tuple(np.where(tau[:, i] > 0, a, b) for a, b in zip(new, st, strict=True))
         p00, p01, p02, p11, p12, p22, _ = st
         out[go] = np.moveaxis(np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]]),
@@ -332,8 +333,8 @@ class WheelTrack:
         if t_b <= t_a or self._n == 0:
             return np.diag([1e-6, 1e-6, 1e-6])
         st: tuple = (0.0,) * 7
-        for piece in self._pieces_one(t_a, t_b):
-            st = _propagate_piece(st, *piece, q, math.cos, math.sin)
+        for dx, dy, dth, tau, guess in self._pieces_one(t_a, t_b):
+            st = _propagate_piece(st, dx, dy, dth, tau, q, math.cos, math.sin, guess)
         p00, p01, p02, p11, p12, p22, _ = st
         return np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
 
@@ -354,7 +355,9 @@ class WheelTrack:
         idx = np.clip(np.searchsorted(t, mid, side="left"), 0, n - 1)
         tau = np.diff(edges, axis=1).astype(np.float64) / NS_PER_S
         dx, dy, dth = _arcs(self.v[idx], self.w[idx], tau)
-        return dx, dy, dth, tau
+        reach = np.maximum(np.abs(edges[:, :-1] - t[idx]), np.abs(edges[:, 1:] - t[idx]))
+        guess = np.maximum(reach.astype(np.float64) / NS_PER_S - MAX_EXTRAPOLATION_S, 0.0)
+        return dx, dy, dth, tau, np.where(tau > 0, guess, 0.0)
 
     def _pieces_one(self, t_a: int, t_b: int) -> list[tuple[float, float, float, float]]:
         """`_pieces` of one interval t_a < t_b ns in Python floats, without the padding:
@@ -368,23 +371,31 @@ class WheelTrack:
         idx = [min(i, n - 1) for i in  # >= 0
                t.searchsorted([(e0 + e1) // 2 for e0, e1 in pairs], side="left").tolist()]
         out = []
-        for (e0, e1), v, w in zip(pairs, self._v[idx].tolist(), self._w[idx].tolist(),
-                                  strict=True):
+        for (e0, e1), v, w, ts in zip(pairs, self._v[idx].tolist(), self._w[idx].tolist(),
+                                      t[idx].tolist(), strict=True):
             tau = float(e1 - e0) / NS_PER_S
             th = w * tau
             dx, dy = arc_step(v, tau, 0.0, th)
-            out.append((dx, dy, th, tau))
+            reach = max(abs(e0 - ts), abs(e1 - ts))
+            out.append((dx, dy, th, tau, max(float(reach) / NS_PER_S - MAX_EXTRAPOLATION_S,
+                                             0.0)))
         return out
 
 
 def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,
-                     q: tuple[float, float, float], cos: Any, sin: Any) -> tuple:
+                     q: tuple[float, float, float], cos: Any, sin: Any,
+                     guess: Any = 0.0) -> tuple:
     """One piece of `WheelTrack.covariance`'s propagation, state (p00, p01, p02, p11, p12,
     p22, theta) (floats or arrays): P <- F P F^T + G Q G^T, F = [[1, 0, a], [0, 1, b],
     [0, 0, 1]] (a, b: the piece's translation (dx, dy) in the frame at t_a, turned by 90
-    deg), G = rot(theta) (+) 1, Q = diag(q) tau^2; theta += dth."""
+    deg), G = rot(theta) (+) 1, Q = diag(q) tau^2; theta += dth. `guess` s: how far the
+    piece reaches beyond MAX_EXTRAPOLATION_S from the sample whose twist it carries (a
+    dropout): the speed and turn rate may have changed by WHEEL_GUESS_ACCEL and
+    WHEEL_GUESS_YAW_ACCEL times it unseen, added to q's speed and turn-rate variances."""
     p00, p01, p02, p11, p12, p22, th = st
     q0, q1, q2 = q
+    q0 = q0 + (WHEEL_GUESS_ACCEL * guess) ** 2
+    q2 = q2 + (WHEEL_GUESS_YAW_ACCEL * guess) ** 2
     c, s = cos(th), sin(th)
     a = -s * dx - c * dy
     b = c * dx - s * dy
