@@ -163,6 +163,7 @@ def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
 # measured, 2-D ATE against gt_anchor_frame.tum (se2): without the check the none kernel's
 # solve reached 50 m/s at keyframe 48 and ran to 1e9 m; with it 0.184 (one re-anchor);
 # tukey at Huber's 1.345 lost the track (153 m), at its own 4.6851 0.195 (Huber 0.179)
+@pytest.mark.slow  # 13 s: the kernel thresholds and the divergence check have fast tests
 @pytest.mark.parametrize("kernel", ["none", "tukey"])
 def test_isas_isam2_stays_on_the_track_under_any_range_kernel(kernel: str) -> None:
     """Test isam2 on ISAS-Walk1 with a kernel other than Huber: no kernel at all (a
