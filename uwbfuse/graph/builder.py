@@ -466,7 +466,8 @@ class GraphBuilder:
         self.e_seg = np.full(m, -1, dtype=np.int64)  # newest NLOS state segment per anchor
         self.e_est = np.zeros(m)  # its estimate (m)
         self.e_stamp = np.zeros(m)  # its smoother timestamp (s since t0)
-        self.e_created: set[tuple[int, int]] = set()  # NLOS states in the current smoother
+        # NLOS states in the current smoother: (anchor, segment) -> smoother timestamp (s)
+        self.e_created: dict[tuple[int, int], float] = {}
         self.review = True  # delayed re-classification of ranges (online)
 
     def _init_estimate(self, start: Any) -> None:
@@ -1148,6 +1149,7 @@ class GraphBuilder:
         if self.e_seg[anchor] == seg:
             inc.stamps[key] = now
             self.e_stamp[anchor] = now
+            self.e_created[(anchor, seg)] = now
             return key
         if seg < self.e_seg[anchor] or (anchor, seg) in self.e_created:
             # an older segment (delayed review): create it alone if it never existed
@@ -1155,8 +1157,10 @@ class GraphBuilder:
                 nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), None,
                                    self.mixture)
                 inc.values.insert(key, guess)
-                self.e_created.add((anchor, seg))
+            self.e_created[(anchor, seg)] = now
             inc.stamps[key] = now
+            # the anchor's later states chain back to this one: they stay as long
+            self._restamp_later_states(inc, anchor, seg, now)
             return key
         prev = None
         # link only while the previous state is surely still inside the smoother window
@@ -1165,11 +1169,28 @@ class GraphBuilder:
         nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), prev, self.mixture)
         inc.values.insert(key, guess)
         inc.stamps[key] = now
-        self.e_created.add((anchor, seg))
+        self.e_created[(anchor, seg)] = now
         self.e_stamp[anchor] = now
         self.e_seg[anchor] = seg
         self.e_est[anchor] = guess
         return key
+
+    def _restamp_later_states(self, inc: Increment, anchor: int, seg: int, now: float) -> None:
+        """Stamp the anchor's NLOS states after segment `seg` `now` (s) too.
+
+        A state links to the one before it, so along an anchor's chain the smoother must
+        marginalise the older first: a later state leaving the window while an earlier one
+        it hangs on stays (re-stamped by a delayed review) makes GTSAM 4.3's fixed-lag
+        smoother fail the marginalisation ("Asking to remove variables from the variable
+        index that are not unused"), and the online graph re-anchor."""
+        inside = now - self.g.lag + 1.0  # stamped after this: surely still in the window
+        newest = int(self.e_seg[anchor])
+        for s in range(seg + 1, newest + 1):
+            if self.e_created.get((anchor, s), -math.inf) > inside:
+                inc.stamps[nlos_key(anchor, s)] = now
+                self.e_created[(anchor, s)] = now
+        if newest > seg and self.e_stamp[anchor] > inside:
+            self.e_stamp[anchor] = now
 
     def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:
         """Adapt the noise model to the last few thousand one-step residuals (prior: the
