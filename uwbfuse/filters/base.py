@@ -25,7 +25,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from uwbfuse.config import Config
-from uwbfuse.constants import MAX_LOST_FIX_NS, MAX_SOLVED_SPEED, MAX_WINDOW_NS, REPEAT_NS
+from uwbfuse.constants import (
+    MAX_EXTRAPOLATION_S,
+    MAX_LOST_FIX_NS,
+    MAX_SOLVED_SPEED,
+    MAX_WINDOW_NS,
+    REPEAT_NS,
+)
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
 from uwbfuse.filters.adaptive_noise import RangeNoise
@@ -234,6 +240,7 @@ class StreamingFilter(EstimatorBase):
         self._wheel_i = 0
         self.held_v = 0.0
         self.held_omega = 0.0
+        self.held_t: int | None = None  # stamp (ns) of the sample held_v, held_omega came from
         self._last_wheel_t: int | None = None
         self._wheel_in_carry: list[tuple[np.ndarray, ...]] = []
         self._range_carry: list[tuple[np.ndarray, ...]] = []
@@ -660,13 +667,16 @@ class StreamingFilter(EstimatorBase):
 
     def wheel_grid(
         self, t_b: int, meas_t: np.ndarray
-    ) -> tuple[F64, F64, F64, np.ndarray]:
+    ) -> tuple[F64, F64, F64, np.ndarray, F64]:
         """Wheel intervals from t_cur to t_b, split at the measurement stamps.
 
         A wheel sample is the mean velocity over the interval ending at its stamp, so each
         interval takes the first buffered sample stamped at or after its end, or the last
         sample seen when none is buffered yet. Returns v (N,) m/s, omega (N,) rad/s,
-        dt (N,) s and the boundary index (0..N) of each stamp of `meas_t`.
+        dt (N,) s, the boundary index (0..N) of each stamp of `meas_t`, and how far (N,) s
+        each interval that holds the last sample's twist reaches beyond
+        MAX_EXTRAPOLATION_S from that sample's stamp (0 elsewhere: a wheel dropout's guess,
+        `models.unicycle_transition`).
         """
         assert self.t_cur is not None
         i0 = self._wheel_i
@@ -685,11 +695,16 @@ class StreamingFilter(EstimatorBase):
         else:
             v = np.full(len(dt), self.held_v)
             w = np.full(len(dt), self.held_omega)
+        guess = np.zeros(len(dt))
+        if self.held_t is not None and not np.all(have):
+            reach = (bounds[1:] - self.held_t).astype(np.float64) / NS_PER_S
+            guess = np.where(have, 0.0, np.maximum(reach - MAX_EXTRAPOLATION_S, 0.0))
         if k > 0:
             self.held_v = float(self._wheel_v[i0 + k - 1])
             self.held_omega = float(self._wheel_w[i0 + k - 1])
+            self.held_t = int(self._wheel_t[i0 + k - 1])
         self._wheel_i = i1
-        return v, w, dt, np.searchsorted(bounds, meas_t)
+        return v, w, dt, np.searchsorted(bounds, meas_t), guess
 
     # -- internals ----------------------------------------------------------------------
 
@@ -840,7 +855,7 @@ class StreamingFilter(EstimatorBase):
         j = int(np.searchsorted(self._wheel_t, t0, side="right"))
         if j > 0:
             self.held_v, self.held_omega = float(self._wheel_v[j - 1]), float(self._wheel_w[j - 1])
-            self._last_wheel_t = int(self._wheel_t[j - 1])
+            self._last_wheel_t = self.held_t = int(self._wheel_t[j - 1])
         self._wheel_i = j
         # Ranges and wheel measurements at or before t0 are filtered by `_events`.
         self.stale = 0

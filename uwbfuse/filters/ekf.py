@@ -518,7 +518,7 @@ class UnicycleEkf(StreamingFilter):
         [[1, 0, -dy], [0, 1, dx], [0, 0, 1]] of the displacement (dx, dy) so far.
         """
         nr = len(rt)
-        v, w, dt, k = self.wheel_grid(t_b, rt)
+        v, w, dt, k, guess = self.wheel_grid(t_b, rt)
         xb, yb, yawb, mid = unicycle_track(
             self.x[:1], self.x[1:2], self.x[2:], v, w, dt
         )
@@ -552,7 +552,7 @@ class UnicycleEkf(StreamingFilter):
                 self.range_evidence(rt, ra),
             )
         phi, q = unicycle_transition(
-            np.diff(xb), np.diff(yb), v, dt, mid[0], self.sigma_v, self.sigma_w
+            np.diff(xb), np.diff(yb), v, dt, mid[0], self.sigma_v, self.sigma_w, guess
         )
         if self.n_bias:
             f, qb = self.bias_decay(float(dt.sum()))

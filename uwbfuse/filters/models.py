@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
+from uwbfuse.positioning.wheel_track import unseen_twist_variance
 from uwbfuse.streams import UNKNOWN_VARIANCE
 
 F64 = NDArray[np.float64]
@@ -360,13 +361,16 @@ def block_noise(phi: F64, q_diag: F64, t: float) -> F64:
 
 
 def unicycle_transition(
-    dx: F64, dy: F64, v: F64, dt: F64, yaw_mid: F64, sigma_v: float, sigma_w: float
+    dx: F64, dy: F64, v: F64, dt: F64, yaw_mid: F64, sigma_v: float, sigma_w: float,
+    guess: F64 | None = None,
 ) -> tuple[F64, F64]:
     """Block transition Phi (3,3) and discrete noise Q (3,3) of the planar unicycle.
 
     dx, dy (N,) displacements of each interval, v (N,) m/s, dt (N,) s, yaw_mid (N,) rad.
     Wheel noise per sample: sigma_v m/s on speed and sigma_w rad/s on yaw rate, each
     integrated over its interval and carried to the block end by the exact transition.
+    `guess` (N,) s: how far each interval carries a held twist beyond the wheels' last
+    sample (a dropout; `wheel_track.unseen_twist_variance` adds to its noise), None: none.
     """
     sx = dx.sum()
     sy = dy.sum()
@@ -379,7 +383,12 @@ def unicycle_transition(
     g_w = np.stack(
         [-(rest_y + 0.5 * dy) * dt, (rest_x + 0.5 * dx) * dt, dt], axis=1
     )
-    q = sigma_v**2 * g_v.T @ g_v + sigma_w**2 * g_w.T @ g_w
+    if guess is None or not np.any(guess > 0.0):
+        q = sigma_v**2 * g_v.T @ g_v + sigma_w**2 * g_w.T @ g_w
+        return phi, q
+    add_v, add_w = unseen_twist_variance(guess)
+    q = ((sigma_v**2 + add_v)[:, None] * g_v).T @ g_v + (
+        (sigma_w**2 + add_w)[:, None] * g_w).T @ g_w
     return phi, q
 
 

@@ -336,12 +336,12 @@ class UnicycleUkf(UnicycleEkf):
     ) -> np.ndarray:
         """Propagate the 7 sigma points along the wheels to t_b; update with the ranges."""
         nr = len(rt)
-        v, w, dt, k = self.wheel_grid(t_b, rt)
+        v, w, dt, k, guess = self.wheel_grid(t_b, rt)
         off = self.weights.offsets(self.P)
         pts = self.x + off[:, :3]
         xb, yb, yawb, mid = unicycle_track(pts[:, 0], pts[:, 1], pts[:, 2], v, w, dt)
         _, q = unicycle_transition(
-            np.diff(xb[0]), np.diff(yb[0]), v, dt, mid[0], self.sigma_v, self.sigma_w
+            np.diff(xb[0]), np.diff(yb[0]), v, dt, mid[0], self.sigma_v, self.sigma_w, guess
         )
         ex = np.zeros_like(off)
         ex[:, 0] = xb[:, -1] - xb[0, -1]

@@ -382,6 +382,14 @@ class WheelTrack:
         return out
 
 
+def unseen_twist_variance(guess: Any) -> tuple[Any, Any]:
+    """Variances ((m/s)^2, (rad/s)^2) to add to the wheel speed and turn rate of a stretch
+    that carries a held twist `guess` s beyond MAX_EXTRAPOLATION_S from the sample it came
+    from (a dropout): the vehicle may have changed its speed and turn rate unseen by
+    WHEEL_GUESS_ACCEL and WHEEL_GUESS_YAW_ACCEL per second since (floats or arrays)."""
+    return (WHEEL_GUESS_ACCEL * guess) ** 2, (WHEEL_GUESS_YAW_ACCEL * guess) ** 2
+
+
 def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,
                      q: tuple[float, float, float], cos: Any, sin: Any,
                      guess: Any = 0.0) -> tuple:
@@ -390,12 +398,12 @@ def _propagate_piece(st: tuple, dx: Any, dy: Any, dth: Any, tau: Any,
     [0, 0, 1]] (a, b: the piece's translation (dx, dy) in the frame at t_a, turned by 90
     deg), G = rot(theta) (+) 1, Q = diag(q) tau^2; theta += dth. `guess` s: how far the
     piece reaches beyond MAX_EXTRAPOLATION_S from the sample whose twist it carries (a
-    dropout): the speed and turn rate may have changed by WHEEL_GUESS_ACCEL and
-    WHEEL_GUESS_YAW_ACCEL times it unseen, added to q's speed and turn-rate variances."""
+    dropout), its `unseen_twist_variance` added to q's speed and turn-rate variances."""
     p00, p01, p02, p11, p12, p22, th = st
     q0, q1, q2 = q
-    q0 = q0 + (WHEEL_GUESS_ACCEL * guess) ** 2
-    q2 = q2 + (WHEEL_GUESS_YAW_ACCEL * guess) ** 2
+    add_v, add_w = unseen_twist_variance(guess)
+    q0 = q0 + add_v
+    q2 = q2 + add_w
     c, s = cos(th), sin(th)
     a = -s * dx - c * dy
     b = c * dx - s * dy
