@@ -367,3 +367,29 @@ def test_median_ring_equals_np_median_of_the_ring():
         seen = ref[np.isfinite(ref)]
         if len(seen):
             assert ring.median() == float(np.median(seen))
+
+
+def test_imu_pieces_hold_a_rest_guess_through_a_dropout():
+    """Test that an IMU sample is held for MAX_EXTRAPOLATION_S at most: beyond it, the
+    pieces hold what the IMU reads with no turn and no acceleration at the given attitude
+    and bias, and preintegrating them keeps the attitude and the velocity."""
+    from uwbfuse.config import Extrinsics, ImuConfig
+    from uwbfuse.constants import MAX_EXTRAPOLATION_S
+    from uwbfuse.graph import imu
+
+    buf = imu.ImuBuffer()
+    t = np.arange(0, 1_000_000_001, 10_000_000, dtype=np.int64)  # 100 Hz for 1 s
+    spin = np.tile([0.0, 0.0, 2.0], (len(t), 1))  # turning at 2 rad/s when the IMU stops
+    buf.add(t, spin, np.tile([0.3, 0.0, 9.81], (len(t), 1)))
+    params = imu.preintegration_params(ImuConfig(), Extrinsics())
+    attitude = gtsam.Rot3.Ypr(0.4, 0.1, -0.05)
+    bias = gtsam.imuBias.ConstantBias(np.array([0.02, -0.01, 0.03]), np.array([1e-3, 0, 0]))
+    rest = imu.rest_reading(params, attitude, bias)
+    gy, ac, dt = buf.pieces(1_000_000_000, 3_000_000_000, rest)
+    assert math.isclose(dt.sum(), 2.0)
+    held = np.cumsum(dt) <= MAX_EXTRAPOLATION_S + 1e-9
+    assert np.allclose(gy[held], spin[0]) and np.allclose(gy[~held], bias.gyroscope())
+    pim = imu.preintegrate(params, bias, gy[~held], ac[~held], dt[~held])
+    state = pim.predict(gtsam.NavState(attitude, np.zeros(3), np.array([1.0, 0.0, 0.0])), bias)
+    assert state.attitude().equals(attitude, 1e-9)
+    assert np.allclose(state.velocity(), [1.0, 0.0, 0.0], atol=1e-9)

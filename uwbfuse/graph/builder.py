@@ -875,7 +875,8 @@ class GraphBuilder:
             track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
             rel = se2_between(track[:1], track[1:])
         if self.has_imu:
-            gy, ac, dts = self.imu.pieces(t_a, t_b)
+            gy, ac, dts = self.imu.pieces(
+                t_a, t_b, imu_mod.rest_reading(self.pim_params, pose_a.rotation(), bias_a))
             if len(dts) == 0:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)

@@ -17,7 +17,7 @@ import gtsam
 import numpy as np
 
 from uwbfuse.config import Extrinsics, ImuConfig
-from uwbfuse.constants import VIRTUAL_BIAS_RANDOM_WALK
+from uwbfuse.constants import MAX_EXTRAPOLATION_S, VIRTUAL_BIAS_RANDOM_WALK
 from uwbfuse.streams import NS_PER_S
 
 
@@ -75,6 +75,18 @@ def motion_prior_params(
     return p
 
 
+def rest_reading(params: gtsam.PreintegrationCombinedParams, attitude: gtsam.Rot3,
+                 bias: gtsam.imuBias.ConstantBias) -> tuple[np.ndarray, np.ndarray]:
+    """What the IMU of `params` reads (gyro rad/s, specific force m/s^2, IMU frame) on a base
+    at `attitude` (map frame) that neither turns nor accelerates, with `bias`: the guess
+    held through an IMU dropout (`ImuBuffer.pieces`)."""
+    f_base = attitude.unrotate(-np.asarray(params.n_gravity, np.float64))
+    body_p_imu = params.getBodyPSensor()
+    f_imu = body_p_imu.rotation().unrotate(f_base) if body_p_imu is not None else f_base
+    return (np.asarray(bias.gyroscope(), np.float64),
+            np.asarray(f_imu, np.float64) + np.asarray(bias.accelerometer(), np.float64))
+
+
 def bias_prior_sigmas(cfg: ImuConfig) -> np.ndarray:
     """Sigmas of an IMU-bias prior: accelerometer (m/s^2) then gyroscope (rad/s)."""
     return np.array([cfg.accel_bias_sigma] * 3 + [cfg.gyro_bias_sigma] * 3)
@@ -128,8 +140,18 @@ class ImuBuffer:
         if i > 1000:
             self._t, self._gyro, self._acc = self._t[i:], self._gyro[i:], self._acc[i:]
 
-    def pieces(self, t0: int, t1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Zero-order-hold pieces covering [t0, t1]: gyro (n,3), accel (n,3), dt (n,) s."""
+    def pieces(
+        self, t0: int, t1: int,
+        rest: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Zero-order-hold pieces covering [t0, t1]: gyro (n,3), accel (n,3), dt (n,) s.
+
+        A sample is held for at most MAX_EXTRAPOLATION_S; beyond that (an IMU dropout) the
+        pieces hold `rest` (gyro rad/s, specific force m/s^2, IMU frame: what the IMU would
+        read with no turn and no acceleration at the estimated attitude and bias), else
+        no turn and the mean specific force of the half second before the dropout, instead
+        of the sample's instantaneous turn rate and acceleration, which held for seconds
+        spin the attitude and run away."""
         self._flush()
         t = self._t
         if len(t) == 0 or t1 <= t0:
@@ -142,9 +164,34 @@ class ImuBuffer:
         ends[:-1] = t[idx[1:]]
         ends[-1] = t1
         ends = np.minimum(ends, t1)
+        gyro, acc = self._gyro[idx], self._acc[idx]
+        hold_ns = round(MAX_EXTRAPOLATION_S * NS_PER_S)
+        held = ends - t[idx] > hold_ns
+        if np.any(held):  # a dropout: split each long hold into the sample, then the guess
+            cut = np.maximum(np.minimum(t[idx] + hold_ns, ends), starts)
+            starts = np.concatenate([starts, cut[held]])
+            ends = np.concatenate([np.where(held, cut, ends), ends[held]])
+            n = int(np.sum(held))
+            if rest is None:
+                g_rest = np.zeros((n, 3))
+                a_rest = np.array([self._rest_guess(int(i)) for i in idx[held]]).reshape(-1, 3)
+            else:
+                g_rest = np.tile(np.asarray(rest[0], np.float64), (n, 1))
+                a_rest = np.tile(np.asarray(rest[1], np.float64), (n, 1))
+            gyro = np.concatenate([gyro, g_rest])
+            acc = np.concatenate([acc, a_rest])
+            order = np.argsort(starts, kind="stable")
+            starts, ends, gyro, acc = starts[order], ends[order], gyro[order], acc[order]
         dt = (ends - starts).astype(np.float64) / NS_PER_S
         keep = dt > 0
-        return self._gyro[idx][keep], self._acc[idx][keep], dt[keep]
+        return gyro[keep], acc[keep], dt[keep]
+
+    def _rest_guess(self, i: int) -> np.ndarray:
+        """Specific force (3,) m/s^2, IMU frame, held through a dropout after sample i with
+        no turn: the mean over the MAX_EXTRAPOLATION_S before it (gravity at the attitude
+        the device had, where a walker's or vehicle's accelerations average out)."""
+        lo = int(np.searchsorted(self._t, self._t[i] - round(MAX_EXTRAPOLATION_S * NS_PER_S)))
+        return self._acc[lo : i + 1].mean(axis=0)
 
     def rotation_between(self, t0: int, t1: int, gyro_bias: np.ndarray,
                          body_r_imu: np.ndarray) -> np.ndarray:
