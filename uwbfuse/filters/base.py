@@ -234,6 +234,7 @@ class StreamingFilter(EstimatorBase):
         self._imu_i = 0
         self.held_w: F64 | None = None
         self.held_f: F64 | None = None
+        self.held_imu_t: int | None = None  # stamp (ns) of the sample held_w, held_f came from
         self._wheel_t = np.zeros(0, dtype=np.int64)
         self._wheel_v = np.zeros(0)
         self._wheel_w = np.zeros(0)
@@ -637,8 +638,10 @@ class StreamingFilter(EstimatorBase):
         and for each stamp of `meas_t` the index of the interval boundary (0..N) it falls
         on (boundaries may repeat; repeated ones have dt = 0). Consumes the IMU samples
         with stamps in (t_cur, t_b]; the last becomes the held sample. Before the first
-        sample the first available one is held backwards; with no sample at all the rows
-        are NaN (the caller substitutes a still sample).
+        sample the first available one is held backwards; with no sample at all, or where the
+        held sample is older than MAX_EXTRAPOLATION_S (an IMU dropout: its instantaneous
+        turn rate held for seconds would spin the attitude), the rows are NaN (the caller
+        substitutes a still sample: no turn, no acceleration at its attitude and biases).
         """
         assert self.t_cur is not None
         i0 = self._imu_i
@@ -646,6 +649,7 @@ class StreamingFilter(EstimatorBase):
         ts = self._imu_t[i0:i1]
         if self.held_w is None and i0 < len(self._imu_t):
             self.held_w, self.held_f = self._imu_w[i0], self._imu_f[i0]
+            self.held_imu_t = int(self._imu_t[i0])
         # Boundaries need not be unique: a zero-length interval changes nothing.
         bounds = np.concatenate([[self.t_cur], ts, meas_t, [t_b]])
         bounds.sort()
@@ -656,12 +660,17 @@ class StreamingFilter(EstimatorBase):
             gyro, accel = self._imu_w[jj], self._imu_f[jj]
         else:
             gyro, accel = np.empty((len(dt), 3)), np.empty((len(dt), 3))
-        if j[0] < 0:  # intervals before the first new sample hold the last one
+        if j[0] < 0:  # intervals before the first new sample hold the last one ...
             before = j < 0
             gyro[before] = np.nan if self.held_w is None else self.held_w
             accel[before] = np.nan if self.held_f is None else self.held_f
+            if self.held_imu_t is not None:  # ... for MAX_EXTRAPOLATION_S at most (a dropout)
+                late = before & (bounds[:-1] - self.held_imu_t > MAX_EXTRAPOLATION_S * NS_PER_S)
+                gyro[late] = np.nan
+                accel[late] = np.nan
         if i1 > i0:
             self.held_w, self.held_f = self._imu_w[i1 - 1], self._imu_f[i1 - 1]
+            self.held_imu_t = int(self._imu_t[i1 - 1])
         self._imu_i = i1
         return gyro, accel, dt, np.searchsorted(bounds, meas_t)
 
@@ -851,6 +860,7 @@ class StreamingFilter(EstimatorBase):
         i = int(np.searchsorted(self._imu_t, t0, side="right"))
         if i > 0:
             self.held_w, self.held_f = self._imu_w[i - 1], self._imu_f[i - 1]
+            self.held_imu_t = int(self._imu_t[i - 1])
         self._imu_i = i
         j = int(np.searchsorted(self._wheel_t, t0, side="right"))
         if j > 0:

@@ -252,7 +252,7 @@ class ErrorStateEkf(StreamingFilter):
         """
         nr = len(rt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
-        if np.isnan(gyro[0, 0]):  # no IMU sample yet: a still sample (zero acceleration)
+        if np.isnan(gyro[:, 0]).any():  # no IMU sample (yet): a still one (zero acceleration)
             nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba

@@ -213,7 +213,7 @@ class ErrorStateUkf(ErrorStateEkf):
         """Draw sigma points, mechanise them to t_b, update with the window's measurements."""
         nr, nw = len(rt), len(wt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
-        if np.isnan(gyro[0, 0]):
+        if np.isnan(gyro[:, 0]).any():
             nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
