@@ -385,7 +385,7 @@ def test_imu_pieces_hold_a_rest_guess_through_a_dropout():
     attitude = gtsam.Rot3.Ypr(0.4, 0.1, -0.05)
     bias = gtsam.imuBias.ConstantBias(np.array([0.02, -0.01, 0.03]), np.array([1e-3, 0, 0]))
     rest = imu.rest_reading(params, attitude, bias)
-    gy, ac, dt = buf.pieces(1_000_000_000, 3_000_000_000, rest)
+    gy, ac, dt = buf.pieces(1_000_000_000, 3_000_000_000, lambda: rest)
     assert math.isclose(dt.sum(), 2.0)
     held = np.cumsum(dt) <= MAX_EXTRAPOLATION_S + 1e-9
     assert np.allclose(gy[held], spin[0]) and np.allclose(gy[~held], bias.gyroscope())

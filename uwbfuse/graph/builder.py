@@ -642,13 +642,19 @@ class GraphBuilder:
             pim = gtsam.PreintegratedCombinedMeasurements(self.pim_params, self.bias)
             t_cur = t_a
             inv = pose_a.inverse()
+            rest = self._rest(pose_a, self.bias)
             for tb in t_b.tolist():
-                gy, ac, dt = self.imu.pieces(t_cur, tb)
+                gy, ac, dt = self.imu.pieces(t_cur, tb, rest)
                 imu_mod.integrate(pim, gy, ac, dt)
                 t_cur = max(t_cur, tb)
                 out.append(inv.compose(pim.predict(nav, self.bias).pose()))
             return out
         return [gtsam.Pose3() for _ in range(len(t_b))]
+
+    def _rest(self, pose: gtsam.Pose3, bias: gtsam.imuBias.ConstantBias
+              ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+        """What the IMU reads through a dropout from `pose`, `bias` (`ImuBuffer.pieces`)."""
+        return lambda: imu_mod.rest_reading(self.pim_params, pose.rotation(), bias)
 
     def tag_in_keyframe(
         self, t_a: int, t_b: np.ndarray, pose_a: gtsam.Pose3, vel_a: np.ndarray
@@ -875,8 +881,7 @@ class GraphBuilder:
             track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
             rel = se2_between(track[:1], track[1:])
         if self.has_imu:
-            gy, ac, dts = self.imu.pieces(
-                t_a, t_b, imu_mod.rest_reading(self.pim_params, pose_a.rotation(), bias_a))
+            gy, ac, dts = self.imu.pieces(t_a, t_b, self._rest(pose_a, bias_a))
             if len(dts) == 0:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)

@@ -141,17 +141,15 @@ class ImuBuffer:
             self._t, self._gyro, self._acc = self._t[i:], self._gyro[i:], self._acc[i:]
 
     def pieces(
-        self, t0: int, t1: int,
-        rest: tuple[np.ndarray, np.ndarray] | None = None,
+        self, t0: int, t1: int, rest: Callable[[], tuple[np.ndarray, np.ndarray]],
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Zero-order-hold pieces covering [t0, t1]: gyro (n,3), accel (n,3), dt (n,) s.
 
         A sample is held for at most MAX_EXTRAPOLATION_S; beyond that (an IMU dropout) the
-        pieces hold `rest` (gyro rad/s, specific force m/s^2, IMU frame: what the IMU would
-        read with no turn and no acceleration at the estimated attitude and bias), else
-        no turn and the mean specific force of the half second before the dropout, instead
-        of the sample's instantaneous turn rate and acceleration, which held for seconds
-        spin the attitude and run away."""
+        pieces hold `rest()` (gyro rad/s, specific force m/s^2, IMU frame: what the IMU
+        would read with no turn and no acceleration, `rest_reading`; called only then)
+        instead of the sample's instantaneous turn rate and acceleration, which held for
+        seconds spin the attitude and run away."""
         self._flush()
         t = self._t
         if len(t) == 0 or t1 <= t0:
@@ -172,35 +170,23 @@ class ImuBuffer:
             starts = np.concatenate([starts, cut[held]])
             ends = np.concatenate([np.where(held, cut, ends), ends[held]])
             n = int(np.sum(held))
-            if rest is None:
-                g_rest = np.zeros((n, 3))
-                a_rest = np.array([self._rest_guess(int(i)) for i in idx[held]]).reshape(-1, 3)
-            else:
-                g_rest = np.tile(np.asarray(rest[0], np.float64), (n, 1))
-                a_rest = np.tile(np.asarray(rest[1], np.float64), (n, 1))
-            gyro = np.concatenate([gyro, g_rest])
-            acc = np.concatenate([acc, a_rest])
+            g_rest, a_rest = rest()
+            gyro = np.concatenate([gyro, np.tile(np.asarray(g_rest, np.float64), (n, 1))])
+            acc = np.concatenate([acc, np.tile(np.asarray(a_rest, np.float64), (n, 1))])
             order = np.argsort(starts, kind="stable")
             starts, ends, gyro, acc = starts[order], ends[order], gyro[order], acc[order]
         dt = (ends - starts).astype(np.float64) / NS_PER_S
         keep = dt > 0
         return gyro[keep], acc[keep], dt[keep]
 
-    def _rest_guess(self, i: int) -> np.ndarray:
-        """Specific force (3,) m/s^2, IMU frame, held through a dropout after sample i with
-        no turn: the mean over the MAX_EXTRAPOLATION_S before it (gravity at the attitude
-        the device had, where a walker's or vehicle's accelerations average out)."""
-        lo = int(np.searchsorted(self._t, self._t[i] - round(MAX_EXTRAPOLATION_S * NS_PER_S)))
-        return self._acc[lo : i + 1].mean(axis=0)
-
     def rotation_between(self, t0: int, t1: int, gyro_bias: np.ndarray,
                          body_r_imu: np.ndarray) -> np.ndarray:
         """Base-frame attitude change (3,3) from t0 to t1 (R_t0^T R_t1): the gyro (rad/s,
         IMU frame, less `gyro_bias`) integrated over the zero-order-hold pieces, turned into
         the base frame by `body_r_imu` (3,3)."""
-        gy, _acc, dt = self.pieces(t0, t1)
-        rot = gtsam.Rot3()
         bg = np.asarray(gyro_bias, np.float64)
+        gy, _acc, dt = self.pieces(t0, t1, lambda: (bg, np.zeros(3)))  # a dropout: no turn
+        rot = gtsam.Rot3()
         for w, d in zip(gy, dt.tolist(), strict=True):
             rot = rot.compose(gtsam.Rot3.Expmap((w - bg) * d))
         r_bs = np.asarray(body_r_imu, np.float64)
