@@ -241,7 +241,7 @@ class StreamingFilter(EstimatorBase):
         self._wheel_i = 0
         self.held_v = 0.0
         self.held_omega = 0.0
-        self.held_t: int | None = None  # stamp (ns) of the sample held_v, held_omega came from
+        self.held_wheel_t: int | None = None  # stamp (ns) of the sample held_v, held_omega are
         self._last_wheel_t: int | None = None
         self._wheel_in_carry: list[tuple[np.ndarray, ...]] = []
         self._range_carry: list[tuple[np.ndarray, ...]] = []
@@ -705,13 +705,13 @@ class StreamingFilter(EstimatorBase):
             v = np.full(len(dt), self.held_v)
             w = np.full(len(dt), self.held_omega)
         guess = np.zeros(len(dt))
-        if self.held_t is not None and not np.all(have):
-            reach = (bounds[1:] - self.held_t).astype(np.float64) / NS_PER_S
+        if self.held_wheel_t is not None and not np.all(have):
+            reach = (bounds[1:] - self.held_wheel_t).astype(np.float64) / NS_PER_S
             guess = np.where(have, 0.0, np.maximum(reach - MAX_EXTRAPOLATION_S, 0.0))
         if k > 0:
             self.held_v = float(self._wheel_v[i0 + k - 1])
             self.held_omega = float(self._wheel_w[i0 + k - 1])
-            self.held_t = int(self._wheel_t[i0 + k - 1])
+            self.held_wheel_t = int(self._wheel_t[i0 + k - 1])
         self._wheel_i = i1
         return v, w, dt, np.searchsorted(bounds, meas_t), guess
 
@@ -865,7 +865,7 @@ class StreamingFilter(EstimatorBase):
         j = int(np.searchsorted(self._wheel_t, t0, side="right"))
         if j > 0:
             self.held_v, self.held_omega = float(self._wheel_v[j - 1]), float(self._wheel_w[j - 1])
-            self._last_wheel_t = self.held_t = int(self._wheel_t[j - 1])
+            self._last_wheel_t = self.held_wheel_t = int(self._wheel_t[j - 1])
         self._wheel_i = j
         # Ranges and wheel measurements at or before t0 are filtered by `_events`.
         self.stale = 0
