@@ -142,6 +142,7 @@ def test_nlos_modelling_beats_huber_alone():
     assert a < 0.6 * e  # issue 3: batch at least 40 % below the EKF
 
 
+@pytest.mark.slow  # 19 s: keeps the default suite under 8 min on a slow machine
 def test_range_bias_is_recovered():
     """Test that batch finds simulated per-anchor range offsets (+-0.2 m, no NLOS).
 
@@ -299,6 +300,7 @@ def test_online_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     assert without > 1.15 * with_search
 
 
+@pytest.mark.slow  # 28 s: keeps the default suite under 8 min on a slow machine
 def test_batch_los_search_escapes_a_wrong_nlos_classification(monkeypatch):
     """Test batch's per-stretch LOS/NLOS hypothesis search (warehouse-nlos, seed 1, 120 s).
 
