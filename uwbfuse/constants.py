@@ -426,6 +426,10 @@ NO_INFORMATION = 1e-8
 
 # ns: longest stretch of time handled as one predict/update window
 MAX_WINDOW_NS = 100_000_000
+# rad: largest attitude std the UKF draws sigma points over: its second-order mean of a
+# rotated vector is (1 - sigma^2 / 2) of it (the truth: exp(-sigma^2 / 2)), which changes
+# sign beyond sqrt(2); wider (a start with an unknown heading), the EKF's window runs
+UT_MAX_ATTITUDE_SIGMA = 2.0**0.5
 # ns: a range bit-identical to the previous one of its anchor within this is a re-publication
 # (some RTLS devices send every epoch twice, ~50 ms apart); noisy ranges never repeat to the bit
 REPEAT_NS = 150_000_000

@@ -49,6 +49,7 @@ import math
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import UT_MAX_ATTITUDE_SIGMA
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, Method
 from uwbfuse.filters.adaptive_noise import (
@@ -210,7 +211,15 @@ class ErrorStateUkf(ErrorStateEkf):
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
         wt: np.ndarray, wv: np.ndarray,
     ) -> np.ndarray:
-        """Draw sigma points, mechanise them to t_b, update with the window's measurements."""
+        """Draw sigma points, mechanise them to t_b, update with the window's measurements.
+
+        With the attitude known to no better than UT_MAX_ATTITUDE_SIGMA (a start with an
+        unknown heading) the unscented mean is no mean (at a heading std of pi the wheel
+        rows' predicted forward speed came out -4 times the central sigma point's): the
+        EKF's first-order window runs instead until the updates narrow the attitude.
+        """
+        if math.sqrt(float(np.max(np.diag(self.P)[TH]))) > UT_MAX_ATTITUDE_SIGMA:
+            return super()._window(t_b, rt, ra, rr, wt, wv)
         nr, nw = len(rt), len(wt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
         if np.isnan(gyro[:, 0]).any():
