@@ -343,7 +343,11 @@ class UnicycleUkf(UnicycleEkf):
         self, t_b: int, rt: np.ndarray, ra: np.ndarray, rr: np.ndarray,
         wt: np.ndarray, wv: np.ndarray,
     ) -> np.ndarray:
-        """Propagate the 7 sigma points along the wheels to t_b; update with the ranges."""
+        """Propagate the 7 sigma points along the wheels to t_b; update with the ranges
+        (the EKF's window while the yaw std exceeds UT_MAX_ATTITUDE_SIGMA, as in
+        `ErrorStateUkf._window`: the unscented mean of the window's motion turns back)."""
+        if math.sqrt(float(self.P[2, 2])) > UT_MAX_ATTITUDE_SIGMA:
+            return super()._window(t_b, rt, ra, rr, wt, wv)
         nr = len(rt)
         v, w, dt, k, guess = self.wheel_grid(t_b, rt)
         off = self.weights.offsets(self.P)
