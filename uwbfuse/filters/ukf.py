@@ -28,6 +28,12 @@ mass with UWB position fixes and no LiDAR here):
   wheel speeds are base-frame velocity measurements (forward v, zero lateral/vertical
   speed); soft planar height and roll/pitch constraint with wheels, as in the EKF.
 
+Where the attitude is as good as unknown (a still start sees no heading: std pi), a
+window runs the EKF's first-order update instead: the scaled unscented transform's mean is
+exact to second order, which for a rotated vector is (1 - sigma^2 / 2) of it and turns
+back beyond sigma = sqrt(2) rad (`UT_MAX_ATTITUDE_SIGMA`; docs/results.md, "The UKF from a
+start with an unknown heading").
+
 Windows: as in the EKF, the time since the last step is cut into windows of at most 0.1 s.
 One sigma-point set is drawn at the window start and propagated through the window; every
 measurement of the window is predicted on each sigma point's trajectory at its own stamp,
