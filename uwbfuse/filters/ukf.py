@@ -113,6 +113,13 @@ class MerweWeights:
         return np.concatenate([np.zeros((1, self.n)), cols, -cols])
 
 
+def _linearise_instead(attitude_var: F64) -> bool:
+    """True where an attitude variance (rad^2) exceeds UT_MAX_ATTITUDE_SIGMA^2: there the
+    unscented mean of a rotated vector turns back (module docstring), and the window is the
+    EKF's."""
+    return float(np.max(attitude_var)) > UT_MAX_ATTITUDE_SIGMA**2
+
+
 def _unscented_update(
     wts: MerweWeights, ex: F64, zs: F64, z: F64, r: F64, p_prior: F64,
     noise: RangeNoise, anchor: np.ndarray,
@@ -224,7 +231,7 @@ class ErrorStateUkf(ErrorStateEkf):
         rows' predicted forward speed came out -4 times the central sigma point's): the
         EKF's first-order window runs instead until the updates narrow the attitude.
         """
-        if math.sqrt(float(np.max(np.diag(self.P)[TH]))) > UT_MAX_ATTITUDE_SIGMA:
+        if _linearise_instead(np.diag(self.P)[TH]):
             return super()._window(t_b, rt, ra, rr, wt, wv)
         nr, nw = len(rt), len(wt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
@@ -352,7 +359,7 @@ class UnicycleUkf(UnicycleEkf):
         """Propagate the 7 sigma points along the wheels to t_b; update with the ranges
         (the EKF's window while the yaw std exceeds UT_MAX_ATTITUDE_SIGMA, as in
         `ErrorStateUkf._window`: the unscented mean of the window's motion turns back)."""
-        if math.sqrt(float(self.P[2, 2])) > UT_MAX_ATTITUDE_SIGMA:
+        if _linearise_instead(np.diag(self.P)[2:3]):
             return super()._window(t_b, rt, ra, rr, wt, wv)
         nr = len(rt)
         v, w, dt, k, guess = self.wheel_grid(t_b, rt)
