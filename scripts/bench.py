@@ -119,13 +119,14 @@ def run_one(log_path: str, method: str) -> dict:
         res = estimate(log, Method(method), cfg, covariance=False)
     wall = time.perf_counter() - tic
     cpu = time.process_time() - c0
+    # the method's own peak, read before the plain LM below adds its own allocations
+    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     if Method(method) is Method.BATCH:
         from uwbfuse.graph.reference import plain_huber_lm
 
         plain = plain_huber_lm(cfg, *graph_est.batch_inputs())
     lat = np.asarray(res.report.get("update_latency_raw_s", res.step_latency_s)) * 1e3
     tenth = max(len(lat) // 10, 1)
-    rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {
         "log": Path(log_path).name,
         "method": method,
