@@ -54,12 +54,12 @@ from uwbfuse.constants import (
 )
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
-from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
+from uwbfuse.graph.noise import diagonal, pose_sigmas, range_noise, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import (
     los_bias_key,
     nlos_state_factors,
-    range_factor,
+    range_factor_keyed,
     robust_log_density,
 )
 from uwbfuse.graph.wheel import (
@@ -1029,8 +1029,7 @@ class GraphBuilder:
                 g[:] = 0.0
         else:
             e_pred = np.zeros(len(t))
-        slots = [self.range_factors(inc, ka, int(a[j]), float(z[j]), tag_kf[j], int(seg[j]),
-                                    float(g[j]), float(e_pred[j])) for j in range(len(t))]
+        slots = self.range_factors(inc, ka, a, z, tag_kf, seg, g, e_pred)
         sig_l = self.robust_sigma() if self.robust_online else (
             mix.sigma_los if self.nlos else self.cfg.uwb.sigma)
         uwb = self.cfg.uwb
@@ -1086,29 +1085,48 @@ class GraphBuilder:
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(
-        self, inc: Increment, ka: int, a: int, z: float, tag_kf: np.ndarray, seg: int, g: float,
-        e_guess: float,
-    ) -> list[int]:
-        """Add one range's LOS and NLOS factors (weights 1-g, g); return their positions."""
+        self, inc: Increment, ka: int, a: np.ndarray, z: np.ndarray, tag_kf: np.ndarray,
+        seg: np.ndarray, g: np.ndarray, e_guess: np.ndarray,
+    ) -> list[list[int]]:
+        """Add the LOS and NLOS factors (weights 1-g, g) of ranges attached to X(ka), in
+        order: anchors `a`, ranges `z` m, tag positions (N,3) in the keyframe's base frame,
+        NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,); return
+        each range's factor positions in `inc.graph`. The sigmas are computed for all
+        ranges at once, only the GTSAM objects one by one."""
         mix = self.mixture
         uwb = self.cfg.uwb
-        t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf)
         if self.robust_online:
             sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
-        out = []
+        g = np.asarray(g, np.float64)
         w_l = 1.0 - g
-        if w_l > MIN_WEIGHT:
-            out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, sig_l / math.sqrt(w_l), t_tag, uwb,
-                                       los_bias_key(a, self.with_bias)))
-        if g > MIN_WEIGHT:
-            key = self._nlos_state(inc, a, seg, e_guess)
-            out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / math.sqrt(g), t_tag, uwb,
-                                       key))
-        return out
+        use_l, use_n = w_l > MIN_WEIGHT, g > MIN_WEIGHT
+        s_l = np.zeros(len(g))
+        s_n = np.zeros(len(g))
+        s_l[use_l] = sig_l / np.sqrt(w_l[use_l])
+        s_n[use_n] = mix.sigma_nlos / np.sqrt(g[use_n])
+        graph = inc.graph
+        pose_key = X(ka)
+        kernel, threshold = uwb.robust_kernel, uwb.kernel_threshold
+        slots = []
+        for j, (aj, zj, sj, ej, lj, nj, sl, sn) in enumerate(zip(
+                np.asarray(a).tolist(), np.asarray(z, np.float64).tolist(),
+                np.asarray(seg).tolist(), np.asarray(e_guess, np.float64).tolist(),
+                use_l.tolist(), use_n.tolist(), s_l.tolist(), s_n.tolist(), strict=True)):
+            t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf[j])
+            out = []
+            if lj:
+                out.append(graph.size())
+                graph.add(range_factor_keyed(pose_key, L(aj), los_bias_key(aj, self.with_bias),
+                                             zj, range_noise(sl, kernel, threshold), t_tag))
+            if nj:
+                key = self._nlos_state(inc, aj, sj, ej)
+                out.append(graph.size())
+                graph.add(range_factor_keyed(pose_key, L(aj), key, zj,
+                                             range_noise(sn, kernel, threshold), t_tag))
+            slots.append(out)
+        return slots
 
     def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:
         """Recursive least squares of each anchor's range scale error k from LOS-weighted

@@ -583,10 +583,12 @@ class GraphEstimator(EstimatorBase):
             inc = self._review_inc
             for j in changed.tolist():
                 inc.remove.extend(rb.factors[j])
-                pos = b.range_factors(inc, rb.ka, int(rb.anchor[j]), float(rb.z[j]),
-                                      rb.tag_kf[j], int(rb.seg[j]), float(gb[j]), float(eb[j]))
-                inc.replaced.append((rb, j, pos))
-                rb.g[j] = gb[j]
+            slots = b.range_factors(inc, rb.ka, rb.anchor[changed], rb.z[changed],
+                                    rb.tag_kf[changed], rb.seg[changed], gb[changed],
+                                    eb[changed])
+            inc.replaced.extend((rb, j, pos)
+                                for j, pos in zip(changed.tolist(), slots, strict=True))
+            rb.g[changed] = gb[changed]
             b.records.g_online[rb.record][changed] = gb[changed]
             self._n_reviewed += len(changed)
 
