@@ -30,8 +30,7 @@ import numpy as np
 
 from uwbfuse.config import KERNEL_THRESHOLD_95, RobustKernel, UwbConfig
 from uwbfuse.constants import EXCESS_FLOOR, SEARCH_MAX_ANCHORS, SEARCH_SHIFT_SIGMA
-from uwbfuse.graph.keys import D, L, X
-from uwbfuse.graph.noise import range_noise
+from uwbfuse.graph.keys import D
 from uwbfuse.nlos import NlosModel
 
 
@@ -55,25 +54,12 @@ def robust_log_density(r: np.ndarray, sigma: float, uwb: UwbConfig) -> np.ndarra
     return huber_log_density(r, sigma, k)
 
 
-def range_factor(
-    k: int,
-    anchor: int,
-    measured: float,
-    sigma: float,
-    body_t_tag: gtsam.Pose3,
-    uwb: UwbConfig,
-    bias_key: int | None,
-) -> gtsam.NonlinearFactor:
-    """Range from X(k) through `body_t_tag` to anchor L(a), plus the bias variable if any."""
-    noise = range_noise(sigma, uwb.robust_kernel, uwb.kernel_threshold)
-    return range_factor_keyed(X(k), L(anchor), bias_key, float(measured), noise, body_t_tag)
-
-
 def range_factor_keyed(
     pose_key: int, anchor_key: int, bias_key: int | None, measured: float,
     noise: gtsam.noiseModel.Base, body_t_tag: gtsam.Pose3,
 ) -> gtsam.NonlinearFactor:
-    """The native range factor of `range_factor` from keys and a ready noise model."""
+    """Range from `pose_key` through `body_t_tag` to the anchor `anchor_key` (m), plus the
+    bias variable `bias_key` if any, with a ready noise model (`noise.range_noise`)."""
     if bias_key is not None:
         return gtsam.RangeFactorWithTransformBias3D(
             pose_key, anchor_key, bias_key, measured, noise, body_t_tag)
