@@ -62,6 +62,7 @@ from uwbfuse.graph.uwb import (
     range_factor_keyed,
     robust_log_density,
 )
+from uwbfuse.graph.values import insert_bias, insert_double, insert_pose3
 from uwbfuse.graph.wheel import (
     FEW_QUERIES,
     WheelTrack,
@@ -895,7 +896,7 @@ class GraphBuilder:
             pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
             new_pose, new_vel = pred.pose(), pred.velocity()
             inc.values.insert(V(k), new_vel)
-            inc.values.insert(B(k), bias_a)
+            insert_bias(inc.values, B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
         if rel is not None:
@@ -927,7 +928,7 @@ class GraphBuilder:
             inc.graph.add(motion[-1])
         if self.recent is not None and pieces is not None:
             self.recent.add(ka, motion, bias_a, pieces)
-        inc.values.insert(X(k), new_pose)
+        insert_pose3(inc.values, X(k), new_pose)
         inc.stamps[X(k)] = self.stamp(k)
         t_p, p_p, q_p, c_p = self.poses.take(t_b)
         if len(t_p):  # each at its own time, through the motion since X(ka) (as ranges)
@@ -1180,7 +1181,7 @@ class GraphBuilder:
             if (anchor, seg) not in self.e_created:
                 nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), None,
                                    self.mixture)
-                inc.values.insert(key, guess)
+                insert_double(inc.values, key, guess)
             self.e_created[(anchor, seg)] = now
             inc.stamps[key] = now
             # the anchor's later states chain back to this one: they stay as long
@@ -1191,7 +1192,7 @@ class GraphBuilder:
         if self.e_seg[anchor] >= 0 and self.e_stamp[anchor] > now - self.g.lag + 1.0:
             prev = nlos_key(anchor, int(self.e_seg[anchor]))
         nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), prev, self.mixture)
-        inc.values.insert(key, guess)
+        insert_double(inc.values, key, guess)
         inc.stamps[key] = now
         self.e_created[(anchor, seg)] = now
         self.e_stamp[anchor] = now
