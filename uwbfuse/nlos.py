@@ -309,14 +309,56 @@ def hmm_filter(
     p_nlos; `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs each transition by the
     change of residual it implies.
     """
-    out, priors = [], []
-    p = p0
-    # Python floats in the loop (numpy item access was most of its time; the same values)
+    d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
+    out, p, priors = _filter_chain(d, jl, p_switch, p_nlos, p0)
+    return np.array(out, dtype=np.float64), p, np.array(priors, dtype=np.float64)
+
+
+def hmm_filter_by_anchor(
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    p_nlos: float, p_last: np.ndarray, jump_ll: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`hmm_filter` of the ranges of several anchors (each anchor's in time order): P(NLOS)
+    and the predicted prior per range. Anchor a's chain starts from `p_last[a]` and leaves
+    its last P(NLOS) there (in place). The inputs are prepared once for all ranges (the
+    same numbers as anchor by anchor: every step is elementwise)."""
+    d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
+    g, prior = [0.0] * len(d), [0.0] * len(d)
+    for a, rows in _rows_by_anchor(anchor):
+        out, p_last[a], priors = _filter_chain(
+            [d[i] for i in rows], None if jl is None else [jl[i] for i in rows],
+            p_switch, p_nlos, p_last[a])
+        for i, x, q in zip(rows, out, priors, strict=True):
+            g[i], prior[i] = x, q
+    return np.array(g, dtype=np.float64), np.array(prior, dtype=np.float64)
+
+
+def _rows_by_anchor(anchor: np.ndarray) -> list[tuple[int, list[int]]]:
+    """(anchor, its rows in order) for each anchor of `anchor` (N,), anchors ascending."""
+    rows: dict[int, list[int]] = {}
+    for i, a in enumerate(np.asarray(anchor).tolist()):
+        rows.setdefault(a, []).append(i)
+    return sorted(rows.items())
+
+
+def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray | None
+                   ) -> tuple[list[float], list | None]:
+    """`hmm_filter`'s per-range inputs as Python lists: the clipped log-likelihood ratio
+    and the jump evidence scaled to its largest entry (N,2,2)."""
     d = np.minimum(np.maximum(ll_nlos - ll_los, -50.0), 50.0).tolist()  # np.clip's
-    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
-    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
     jl = (None if jump_ll is None
           else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True)).tolist())
+    return d, jl
+
+
+def _filter_chain(d: list[float], jl: list | None, p_switch: float, p_nlos: float,
+                  p0: float) -> tuple[list[float], float, list[float]]:
+    """`hmm_filter`'s loop over one chain in Python floats (numpy item access was most of
+    its time; the same values)."""
+    out, priors = [], []
+    p = p0
+    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
+    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
     for i in range(len(d)):
         if jl is None:
             prior = (1.0 - p_switch) * p + p_switch * p_nlos
@@ -330,7 +372,7 @@ def hmm_filter(
         lo = math.log(prior / (1.0 - prior)) + d[i]
         p = 1.0 / (1.0 + math.exp(-lo))
         out.append(p)
-    return np.array(out, dtype=np.float64), p, np.array(priors, dtype=np.float64)
+    return out, p, priors
 
 
 def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
@@ -348,25 +390,60 @@ def hmm_smooth(
     `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs the transition into each range;
     `p0` is P(NLOS) of the first range before its own evidence (default: p_nlos).
     """
-    n = len(ll_los)
-    if n == 0:
+    if len(ll_los) == 0:
         return np.zeros(0)
+    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    return np.array(_smooth_chain(e0, e1, *tr, p_nlos, p0), dtype=np.float64)
+
+
+def hmm_smooth_by_anchor(
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    p_nlos: float, jump_ll: np.ndarray | None, p0: np.ndarray,
+) -> np.ndarray:
+    """`hmm_smooth` of the ranges of several anchors (each anchor's in time order), each
+    anchor's chain from `p0` (N,) of its first range. The inputs are prepared once for all
+    ranges (the same numbers as anchor by anchor: every step is elementwise)."""
+    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    p0_list = np.asarray(p0, np.float64).tolist()
+    g = [0.0] * len(e0)
+    for _, rows in _rows_by_anchor(anchor):
+        post = _smooth_chain([e0[i] for i in rows], [e1[i] for i in rows],
+                             *([t[i] for i in rows] for t in tr), p_nlos, p0_list[rows[0]])
+        for i, x in zip(rows, post, strict=True):
+            g[i] = x
+    return np.array(g, dtype=np.float64)
+
+
+def _smooth_inputs(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float,
+    jump_ll: np.ndarray | None,
+) -> tuple[list[float], list[float], tuple[list[float], ...]]:
+    """`hmm_smooth`'s per-range inputs as Python lists: the two likelihoods scaled to
+    their larger one, and the transition matrix into each range (t00, t01, t10, t11),
+    each entry scaled by the jump evidence if any."""
+    n = len(ll_los)
     a = np.array([[1.0 - p_switch * p_nlos, p_switch * p_nlos],
                   [p_switch * (1.0 - p_nlos), 1.0 - p_switch * (1.0 - p_nlos)]])
     m = np.maximum(ll_los, ll_nlos)
-    e = np.stack([np.exp(ll_los - m), np.exp(ll_nlos - m)], axis=1)
-    # per-step transition matrices: `a`, each entry scaled by the jump evidence if any
+    e0, e1 = np.exp(ll_los - m).tolist(), np.exp(ll_nlos - m).tolist()
     if jump_ll is None:
         tr = np.broadcast_to(a, (n, 2, 2))
     else:
         tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
-    t00, t01 = tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist()
-    t10, t11 = tr[:, 1, 0].tolist(), tr[:, 1, 1].tolist()
+    return e0, e1, (tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist(), tr[:, 1, 0].tolist(),
+                    tr[:, 1, 1].tolist())
+
+
+def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[float],
+                  t10: list[float], t11: list[float], p_nlos: float, p0: float | None
+                  ) -> list[float]:
+    """`hmm_smooth`'s forward and backward passes over one chain in Python floats (numpy
+    item access was most of the loops' time; the same values)."""
+    n = len(e0)
     q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
-    cur = np.array([1.0 - q0, q0]) * e[0]
-    x0, x1 = (cur / cur.sum()).tolist()
-    e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
-    # the forward messages in Python lists (numpy item access was most of the loops' time)
+    c0, c1 = (1.0 - q0) * e0[0], q0 * e1[0]
+    s = c0 + c1
+    x0, x1 = c0 / s, c1 / s
     alpha0, alpha1 = [x0] * n, [x1] * n
     for i in range(1, n):
         y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
@@ -385,4 +462,4 @@ def hmm_smooth(
         b0, b1 = nb0 / s, nb1 / s
         g0, g1 = alpha0[i] * b0, alpha1[i] * b1
         post[i] = g1 / max(g0 + g1, 1e-300)
-    return np.array(post, dtype=np.float64)
+    return post

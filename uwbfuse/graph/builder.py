@@ -72,7 +72,12 @@ from uwbfuse.graph.wheel import (
     se2_between,
     se2_to_pose3,
 )
-from uwbfuse.nlos import NlosModel, hmm_filter, jump_log_likelihoods, residual_jumps_by_anchor
+from uwbfuse.nlos import (
+    NlosModel,
+    hmm_filter_by_anchor,
+    jump_log_likelihoods,
+    residual_jumps_by_anchor,
+)
 from uwbfuse.positioning.initialisation import applied_lever, range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.start import anchors_observe_height, planar_height
@@ -1016,11 +1021,8 @@ class GraphBuilder:
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
             ll_n = ll_n + evidence
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
-            for anc in np.unique(a):
-                sel = np.flatnonzero(a == anc)
-                g[sel], self.anchor_p[anc], prior[sel] = hmm_filter(
-                    ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
-                    None if jump is None else jump[sel])
+            g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, mix.p_switch, mix.p_nlos,
+                                            self.anchor_p, jump)
             self._online_m_step(r_los, r_nlos, g)
             settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)
             if np.any(settled):

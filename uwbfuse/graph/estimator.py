@@ -76,7 +76,12 @@ from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.review_queue import ReviewQueue
 from uwbfuse.graph.uwb import los_subset_search
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
-from uwbfuse.nlos import NlosModel, hmm_smooth, jump_log_likelihoods, residual_jumps_by_anchor
+from uwbfuse.nlos import (
+    NlosModel,
+    hmm_smooth_by_anchor,
+    jump_log_likelihoods,
+    residual_jumps_by_anchor,
+)
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -485,12 +490,8 @@ class GraphEstimator(EstimatorBase):
             r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur)
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         ll_n = ll_n + cols["evidence"][rows]  # the classifier's
-        g = np.empty(len(z))
-        sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
-        for sel in sels:
-            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
-                                float(prior[sel[0]]))
+        g = hmm_smooth_by_anchor(anchor, ll_l, ll_n, mix.p_switch, mix.p_nlos, jl, prior)
         self._replace_moved(b, queued, now, g, g_cur, e, r_los)
 
     def _reviewable(self, sm: OnlineSmoother, b: GraphBuilder, now: int
