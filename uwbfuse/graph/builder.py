@@ -1094,40 +1094,37 @@ class GraphBuilder:
         """Add the LOS and NLOS factors (weights 1-g, g) of ranges attached to X(ka), in
         order: anchors `a`, ranges `z` m, tag positions (N,3) in the keyframe's base frame,
         NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,); return
-        each range's factor positions in `inc.graph`. The sigmas are computed for all
-        ranges at once, only the GTSAM objects one by one."""
+        each range's factor positions in `inc.graph`."""
         mix = self.mixture
         uwb = self.cfg.uwb
         if self.robust_online:
             sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
-        g = np.asarray(g, np.float64)
-        w_l = 1.0 - g
-        use_l, use_n = w_l > MIN_WEIGHT, g > MIN_WEIGHT
-        s_l = np.zeros(len(g))
-        s_n = np.zeros(len(g))
-        s_l[use_l] = sig_l / np.sqrt(w_l[use_l])
-        s_n[use_n] = mix.sigma_nlos / np.sqrt(g[use_n])
         graph = inc.graph
         pose_key = X(ka)
         kernel, threshold = uwb.robust_kernel, uwb.kernel_threshold
         slots = []
-        for j, (aj, zj, sj, ej, lj, nj, sl, sn) in enumerate(zip(
+        # Python floats: a keyframe has a few ranges, where numpy's per-call cost would
+        # exceed the arithmetic (the same IEEE operations either way)
+        for j, (aj, zj, sj, gj, ej) in enumerate(zip(
                 np.asarray(a).tolist(), np.asarray(z, np.float64).tolist(),
-                np.asarray(seg).tolist(), np.asarray(e_guess, np.float64).tolist(),
-                use_l.tolist(), use_n.tolist(), s_l.tolist(), s_n.tolist(), strict=True)):
+                np.asarray(seg).tolist(), np.asarray(g, np.float64).tolist(),
+                np.asarray(e_guess, np.float64).tolist(), strict=True)):
             t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf[j])
             out = []
-            if lj:
+            w_l = 1.0 - gj
+            if w_l > MIN_WEIGHT:
                 out.append(graph.size())
-                graph.add(range_factor_keyed(pose_key, L(aj), los_bias_key(aj, self.with_bias),
-                                             zj, range_noise(sl, kernel, threshold), t_tag))
-            if nj:
+                graph.add(range_factor_keyed(
+                    pose_key, L(aj), los_bias_key(aj, self.with_bias), zj,
+                    range_noise(sig_l / math.sqrt(w_l), kernel, threshold), t_tag))
+            if gj > MIN_WEIGHT:
                 key = self._nlos_state(inc, aj, sj, ej)
                 out.append(graph.size())
-                graph.add(range_factor_keyed(pose_key, L(aj), key, zj,
-                                             range_noise(sn, kernel, threshold), t_tag))
+                graph.add(range_factor_keyed(
+                    pose_key, L(aj), key, zj,
+                    range_noise(mix.sigma_nlos / math.sqrt(gj), kernel, threshold), t_tag))
             slots.append(out)
         return slots
 
