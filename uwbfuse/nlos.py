@@ -60,6 +60,7 @@ from uwbfuse.streams import AnchorMap
 F64 = NDArray[np.float64]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_FEW_JUMPS = 16  # `residual_jumps_by_anchor` in Python up to this many ranges
 
 
 @dataclass(frozen=True)
@@ -247,14 +248,12 @@ def jump_log_likelihoods(
     d = np.where(np.isnan(delta), 0.0, delta)  # finite otherwise (`residual_jumps`)
     m = np.maximum(excess, 0.1)
 
-    def ll(x: np.ndarray, s: float) -> np.ndarray:
-        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, LOG_OUTLIER)
-
-    out = np.empty((len(d), 2, 2))
-    out[:, 0, 0] = ll(d, s_stay_l)
-    out[:, 0, 1] = ll(d - m, s_jump)
-    out[:, 1, 0] = ll(d + m, s_jump)
-    out[:, 1, 1] = ll(d, s_stay_n)
+    # the four transitions' Gaussians floored as outliers, in one pass: (N,4) -> (N,2,2)
+    sig = np.array([s_stay_l, s_jump, s_jump, s_stay_n])
+    log_sig = np.array([math.log(x) for x in sig.tolist()])
+    x = np.stack([d, d - m, d + m, d], axis=1)
+    out = np.logaddexp(-0.5 * (x / sig) ** 2 - log_sig - _LOG_SQRT_2PI,
+                       LOG_OUTLIER).reshape(-1, 2, 2)
     out[np.isnan(delta)] = 0.0
     return out
 
@@ -276,7 +275,10 @@ def residual_jumps_by_anchor(
     """`residual_jumps` of the ranges of several anchors at once, each anchor's ranges in
     time order. `lead_t`, `lead_r` (indexed by anchor): each anchor's previous range (stamp
     ns, residual m), which leads its chain; without them an anchor's first range has no
-    jump (NaN). One vectorised call instead of one per anchor."""
+    jump (NaN). One vectorised call instead of one per anchor (a few ranges: in Python,
+    the same operations)."""
+    if len(t_ns) <= _FEW_JUMPS:
+        return _residual_jumps_few(t_ns, anchor, r, lead_t, lead_r)
     order = np.lexsort((t_ns, anchor))
     a_s = anchor[order]
     t_s = np.asarray(t_ns, np.int64)[order]
@@ -295,6 +297,28 @@ def residual_jumps_by_anchor(
     out = np.empty(len(t_ns))
     out[order] = d
     return out
+
+
+def _residual_jumps_few(
+    t_ns: np.ndarray, anchor: np.ndarray, r: np.ndarray,
+    lead_t: np.ndarray | None, lead_r: np.ndarray | None,
+) -> np.ndarray:
+    """`residual_jumps_by_anchor` of a few ranges in Python numbers (one keyframe's)."""
+    t, a = np.asarray(t_ns, np.int64).tolist(), np.asarray(anchor).tolist()
+    rr = np.asarray(r, np.float64).tolist()
+    out = [0.0] * len(t)
+    prev: dict[int, tuple[int, float]] = {}  # each anchor's previous range
+    for i in sorted(range(len(t)), key=lambda i: (a[i], t[i])):  # stable, as lexsort
+        if a[i] in prev:
+            t_prev, r_prev = prev[a[i]]
+        elif lead_t is None or lead_r is None:  # NaN below (the gap)
+            t_prev, r_prev = int(np.iinfo(np.int64).min // 2), 0.0
+        else:
+            t_prev, r_prev = int(lead_t[a[i]]), float(lead_r[a[i]])
+        d = rr[i] - r_prev
+        out[i] = math.nan if (t[i] - t_prev) > JUMP_MAX_GAP_NS or not abs(d) < JUMP_MAX_M else d
+        prev[a[i]] = (t[i], rr[i])
+    return np.array(out, dtype=np.float64)
 
 
 def hmm_filter(

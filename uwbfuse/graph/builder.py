@@ -1082,9 +1082,9 @@ class GraphBuilder:
         leads)."""
         delta = residual_jumps_by_anchor(t, a, r, self._jump_t, self._jump_r)
         # each anchor's newest range leads its next keyframe's chain (t is time-sorted)
-        lead, last = np.unique(a[::-1], return_index=True)
-        last = len(a) - 1 - last
-        self._jump_r[lead], self._jump_t[lead] = r[last], t[last]
+        last = {anc: i for i, anc in enumerate(a.tolist())}  # each anchor's last row
+        for anc, i in last.items():
+            self._jump_r[anc], self._jump_t[anc] = r[i], t[i]
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(
