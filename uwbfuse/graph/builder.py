@@ -54,7 +54,7 @@ from uwbfuse.constants import (
 )
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
-from uwbfuse.graph.noise import diagonal, pose_sigmas, range_noise, robust_weight
+from uwbfuse.graph.noise import diagonal, pose_sigmas, range_noise_maker, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import (
     los_bias_key,
@@ -311,6 +311,7 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
 
 
 _ROT_IDENTITY = gtsam.Rot3()  # the range factors' tag offset is a pure translation
+
 
 
 class GraphBuilder:
@@ -1103,7 +1104,9 @@ class GraphBuilder:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         graph = inc.graph
         pose_key = X(ka)
-        kernel, threshold = uwb.robust_kernel, uwb.kernel_threshold
+        noise = range_noise_maker(uwb.robust_kernel, uwb.kernel_threshold)
+        los_key = [los_bias_key(x, self.with_bias) for x in range(len(self.anchors))]
+        anchor_key = [L(x) for x in range(len(self.anchors))]
         slots = []
         # Python floats: a keyframe has a few ranges, where numpy's per-call cost would
         # exceed the arithmetic (the same IEEE operations either way)
@@ -1116,15 +1119,13 @@ class GraphBuilder:
             w_l = 1.0 - gj
             if w_l > MIN_WEIGHT:
                 out.append(graph.size())
-                graph.add(range_factor_keyed(
-                    pose_key, L(aj), los_bias_key(aj, self.with_bias), zj,
-                    range_noise(sig_l / math.sqrt(w_l), kernel, threshold), t_tag))
+                graph.add(range_factor_keyed(pose_key, anchor_key[aj], los_key[aj], zj,
+                                             noise(sig_l / math.sqrt(w_l)), t_tag))
             if gj > MIN_WEIGHT:
                 key = self._nlos_state(inc, aj, sj, ej)
                 out.append(graph.size())
-                graph.add(range_factor_keyed(
-                    pose_key, L(aj), key, zj,
-                    range_noise(mix.sigma_nlos / math.sqrt(gj), kernel, threshold), t_tag))
+                graph.add(range_factor_keyed(pose_key, anchor_key[aj], key, zj,
+                                             noise(mix.sigma_nlos / math.sqrt(gj)), t_tag))
             slots.append(out)
         return slots
 
