@@ -636,8 +636,11 @@ class GraphBuilder:
         The IMU prediction starts from the state (pose_a, vel_a) at t_a and the current bias.
         """
         if self.has_wheel and len(self.wheel):
-            dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
-            rel = se2_between(dd[0][None, :], dd[1:])
+            if len(t_b) < FEW_QUERIES:  # one epoch's prediction: Python floats, bit-identical
+                rel = self.wheel.between_few(t_a, np.asarray(t_b, np.int64).tolist())
+            else:
+                dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
+                rel = se2_between(dd[0][None, :], dd[1:])
             return [se2_to_pose3(r) for r in rel]
         if self.cv_motion:  # constant velocity (map frame) carried into the base frame
             step = pose_a.rotation().unrotate(np.asarray(vel_a, np.float64))
