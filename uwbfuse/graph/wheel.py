@@ -15,7 +15,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from uwbfuse.graph.noise import gaussian_covariances
+from uwbfuse.config import RobustKernel
+from uwbfuse.graph.noise import gaussian_covariances, robust_estimator
 from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
     FEW_QUERIES,
     WheelTrack,
@@ -23,6 +24,12 @@ from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for th
     se2_between,
     se2_compose,
 )
+
+# `planar_covariance6`'s placement of (x, y, theta) in the Pose3 tangent and its floor,
+# and `gaussian_covariances`' diagonal, for `between_factor`
+_PLANAR_IX = np.ix_([3, 4, 2], [3, 4, 2])
+_PLANAR_FLOOR = np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
+_EYE6_1E12 = np.eye(6) * 1e-12
 
 
 def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
@@ -97,6 +104,13 @@ def between_factor(
 ) -> gtsam.BetweenFactorPose3:
     """One `between_factors` factor (a planar delta (3,) with covariance (3,3)), without
     its array passes (one per keyframe online; the same numbers)."""
-    huber = None if robust_k is None else gtsam.noiseModel.mEstimator.Huber.Create(robust_k)
-    cov6 = gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))
+    huber = None if robust_k is None else robust_estimator(RobustKernel.HUBER, robust_k)
+    c = np.asarray(cov_xyt, dtype=np.float64)
+    sr, sp, sz = out_of_plane_sigmas
+    # `planar_covariance6` and `gaussian_covariances` of one (3,3): the same sums
+    cov6 = np.zeros((6, 6))
+    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
+    cov6[_PLANAR_IX] = c
+    cov6 += _PLANAR_FLOOR
+    cov6 = 0.5 * (cov6 + cov6.T) + _EYE6_1E12
     return _between(key_a, key_b, np.asarray(delta).reshape(3), cov6, huber)
