@@ -385,6 +385,12 @@ class GraphBuilder:
         self._init_records(record, seeding)
         self._init_range_scale(start)
         self._init_online_choice()
+        # what every range factor takes: its noise model maker, each anchor's L(a) and LOS
+        # bias key (`range_factors`)
+        self._range_keys = (
+            range_noise_maker(config.uwb.robust_kernel, config.uwb.kernel_threshold),
+            [L(a) for a in range(len(anchors))],
+            [los_bias_key(a, self.with_bias) for a in range(len(anchors))])
 
     def _preintegration_params(self) -> gtsam.PreintegrationCombinedParams | None:
         """The IMU factors' preintegration parameters: the constant-velocity prior's virtual
@@ -1107,9 +1113,7 @@ class GraphBuilder:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
         graph = inc.graph
         pose_key = X(ka)
-        noise = range_noise_maker(uwb.robust_kernel, uwb.kernel_threshold)
-        los_key = [los_bias_key(x, self.with_bias) for x in range(len(self.anchors))]
-        anchor_key = [L(x) for x in range(len(self.anchors))]
+        noise, anchor_key, los_key = self._range_keys
         slots = []
         # Python floats: a keyframe has a few ranges, where numpy's per-call cost would
         # exceed the arithmetic (the same IEEE operations either way)
