@@ -80,6 +80,7 @@ class ReviewQueue:
 
     def rows(self, i: int) -> slice:
         """The rows of batch `i` (position in the queue) in `columns()`."""
+        self.columns()  # the columns start at the first queued batch
         s = self._start[i] - self._start[0]
         return slice(s, s + len(self._batches[i].z))
 
@@ -87,4 +88,4 @@ class ReviewQueue:
         """Batch `i`'s ranges `j` now have factors at responsibilities `g`."""
         rb = self._batches[i]
         rb.g[j] = g
-        self.columns()["g"][self.rows(i)][j] = g
+        self.columns()["g"][self.rows(i)][j] = g  # a view: writes the column
