@@ -24,7 +24,12 @@ gtsam = pytest.importorskip("gtsam")
 
 from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
 from uwbfuse.graph.uwb import los_subset_search  # noqa: E402
-from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
+from uwbfuse.graph.wheel import (  # noqa: E402
+    WheelTrack,
+    between_factor,
+    planar_covariance6,
+    planar_gaussian6,
+)
 
 NS = 1_000_000_000
 
@@ -259,6 +264,20 @@ def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
         want = residual_jumps(np.concatenate([[lead_t[anc]], t[sel]]),
                               np.concatenate([[lead_r[anc]], r[sel]]))[1:]
         np.testing.assert_array_equal(led[sel], want)
+
+
+def test_one_wheel_covariance_equals_the_array_pass():
+    """Test `planar_gaussian6` (one keyframe's wheel factor covariance in Python floats)
+    against `gaussian_covariances(planar_covariance6(...))`, bit for bit."""
+    from uwbfuse.graph.noise import gaussian_covariances
+
+    rng = np.random.default_rng(8)
+    for i in range(500):
+        a = rng.normal(size=(3, 3)) * 10.0 ** rng.integers(-6, 0)
+        c = a @ a.T if i % 2 else a  # symmetric, and not
+        oop = tuple(rng.uniform(0.001, 0.3, 3).tolist())
+        np.testing.assert_array_equal(planar_gaussian6(c, oop),
+                                      gaussian_covariances(planar_covariance6(c, oop)))
 
 
 def test_residual_jumps_of_a_few_ranges_equal_the_vectorised_pass():

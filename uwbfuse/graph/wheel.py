@@ -25,11 +25,7 @@ from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for th
     se2_compose,
 )
 
-# `planar_covariance6`'s placement of (x, y, theta) in the Pose3 tangent and its floor,
-# and `gaussian_covariances`' diagonal, for `between_factor`
-_PLANAR_IX = np.ix_([3, 4, 2], [3, 4, 2])
-_PLANAR_FLOOR = np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
-_EYE6_1E12 = np.eye(6) * 1e-12
+_PLANAR_IX = (3, 4, 2)  # where `planar_covariance6` puts (x, y, theta) in the Pose3 tangent
 
 
 def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
@@ -54,6 +50,26 @@ def planar_covariance6(
     # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
     cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
     return cov6[0] if one else cov6
+
+
+def planar_gaussian6(cov_xyt: np.ndarray,
+                     out_of_plane_sigmas: tuple[float, float, float]) -> np.ndarray:
+    """`gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))` of one
+    (3,3) covariance in (x, y, theta): the (6,6) Pose3 tangent covariance of a wheel
+    factor, in Python floats (the same operations element by element; numpy's per-call
+    cost was most of a keyframe's wheel factor)."""
+    c = np.asarray(cov_xyt, dtype=np.float64).tolist()
+    sr, sp, sz = out_of_plane_sigmas
+    m = [[0.0] * 6 for _ in range(6)]
+    m[0][0], m[1][1], m[5][5] = sr**2, sp**2, sz**2
+    for i, row in zip(_PLANAR_IX, c, strict=True):
+        for j, x in zip(_PLANAR_IX, row, strict=True):
+            m[i][j] = x
+    floor = [0.0, 0.0, 1e-6, 1e-6, 1e-6, 0.0]  # `planar_covariance6`'s, then the diagonal
+    a = [[m[i][j] + (floor[i] if i == j else 0.0) for j in range(6)] for i in range(6)]
+    cov6 = np.array([[0.5 * (a[i][j] + a[j][i]) + (1e-12 if i == j else 0.0)
+                      for j in range(6)] for i in range(6)])  # of `gaussian_covariances`
+    return cov6
 
 
 def between_factors(
@@ -105,12 +121,5 @@ def between_factor(
     """One `between_factors` factor (a planar delta (3,) with covariance (3,3)), without
     its array passes (one per keyframe online; the same numbers)."""
     huber = None if robust_k is None else robust_estimator(RobustKernel.HUBER, robust_k)
-    c = np.asarray(cov_xyt, dtype=np.float64)
-    sr, sp, sz = out_of_plane_sigmas
-    # `planar_covariance6` and `gaussian_covariances` of one (3,3): the same sums
-    cov6 = np.zeros((6, 6))
-    cov6[0, 0], cov6[1, 1], cov6[5, 5] = sr**2, sp**2, sz**2
-    cov6[_PLANAR_IX] = c
-    cov6 += _PLANAR_FLOOR
-    cov6 = 0.5 * (cov6 + cov6.T) + _EYE6_1E12
+    cov6 = planar_gaussian6(cov_xyt, out_of_plane_sigmas)
     return _between(key_a, key_b, np.asarray(delta).reshape(3), cov6, huber)
