@@ -1099,12 +1099,13 @@ class GraphBuilder:
 
     def range_factors(
         self, inc: Increment, ka: int, a: np.ndarray, z: np.ndarray, tag_kf: np.ndarray,
-        seg: np.ndarray, g: np.ndarray, e_guess: np.ndarray,
+        seg: np.ndarray, g: np.ndarray, e_guess: np.ndarray, rows: list[int] | None = None,
     ) -> list[list[int]]:
         """Add the LOS and NLOS factors (weights 1-g, g) of ranges attached to X(ka), in
         order: anchors `a`, ranges `z` m, tag positions (N,3) in the keyframe's base frame,
-        NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,); return
-        each range's factor positions in `inc.graph`."""
+        NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,), of
+        the `rows` given (default all); return each range's factor positions in
+        `inc.graph`."""
         mix = self.mixture
         uwb = self.cfg.uwb
         if self.robust_online:
@@ -1117,10 +1118,11 @@ class GraphBuilder:
         slots = []
         # Python floats: a keyframe has a few ranges, where numpy's per-call cost would
         # exceed the arithmetic (the same IEEE operations either way)
-        for j, (aj, zj, sj, gj, ej) in enumerate(zip(
-                np.asarray(a).tolist(), np.asarray(z, np.float64).tolist(),
-                np.asarray(seg).tolist(), np.asarray(g, np.float64).tolist(),
-                np.asarray(e_guess, np.float64).tolist(), strict=True)):
+        a_l, z_l = np.asarray(a).tolist(), np.asarray(z, np.float64).tolist()
+        seg_l, g_l = np.asarray(seg).tolist(), np.asarray(g, np.float64).tolist()
+        e_l = np.asarray(e_guess, np.float64).tolist()
+        for j in range(len(a_l)) if rows is None else rows:
+            aj, zj, sj, gj, ej = a_l[j], z_l[j], seg_l[j], g_l[j], e_l[j]
             t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf[j])
             out = []
             w_l = 1.0 - gj

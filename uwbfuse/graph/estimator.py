@@ -592,13 +592,11 @@ class GraphEstimator(EstimatorBase):
             if self._review_inc is None:
                 self._review_inc = Increment()
             inc = self._review_inc
-            for j in changed.tolist():
+            rows = changed.tolist()
+            for j in rows:
                 inc.remove.extend(rb.factors[j])
-            slots = b.range_factors(inc, rb.ka, rb.anchor[changed], rb.z[changed],
-                                    rb.tag_kf[changed], rb.seg[changed], gb[changed],
-                                    eb[changed])
-            inc.replaced.extend((rb, j, pos)
-                                for j, pos in zip(changed.tolist(), slots, strict=True))
+            slots = b.range_factors(inc, rb.ka, rb.anchor, rb.z, rb.tag_kf, rb.seg, gb, eb, rows)
+            inc.replaced.extend((rb, j, pos) for j, pos in zip(rows, slots, strict=True))
             q.set_g(i, changed, gb[changed])
             b.records.g_online[rb.record][changed] = gb[changed]
             self._n_reviewed += len(changed)
