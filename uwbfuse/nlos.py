@@ -463,27 +463,40 @@ def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[
                   ) -> list[float]:
     """`hmm_smooth`'s forward and backward passes over one chain in Python floats (numpy
     item access was most of the loops' time; the same values)."""
-    n = len(e0)
     q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
     c0, c1 = (1.0 - q0) * e0[0], q0 * e1[0]
     s = c0 + c1
     x0, x1 = c0 / s, c1 / s
-    alpha0, alpha1 = [x0] * n, [x1] * n
-    for i in range(1, n):
-        y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
-        y1 = (x0 * t01[i] + x1 * t11[i]) * e1[i]
-        s = max(y0 + y1, 1e-300)
+    # forward messages; `max(s, 1e-300)` written as a test (the same value, NaN included)
+    alpha0, alpha1 = [x0], [x1]
+    for a00, a01, a10, a11, f0, f1 in zip(t00[1:], t01[1:], t10[1:], t11[1:], e0[1:], e1[1:],
+                                          strict=True):
+        y0 = (x0 * a00 + x1 * a10) * f0
+        y1 = (x0 * a01 + x1 * a11) * f1
+        s = y0 + y1
+        if s < 1e-300:
+            s = 1e-300
         x0, x1 = y0 / s, y1 / s
-        alpha0[i], alpha1[i] = x0, x1
-    post = [0.0] * n
-    post[-1] = alpha1[-1]
+        alpha0.append(x0)
+        alpha1.append(x1)
+    # backward messages into range i from range i + 1, newest first
+    post = []
     b0, b1 = 1.0, 1.0
-    for i in range(n - 2, -1, -1):
-        c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
-        j = i + 1
-        nb0, nb1 = t00[j] * c0 + t01[j] * c1, t10[j] * c0 + t11[j] * c1
-        s = max(nb0 + nb1, 1e-300)
+    for f0, f1, a00, a01, a10, a11, x0, x1 in zip(
+            reversed(e0[1:]), reversed(e1[1:]), reversed(t00[1:]), reversed(t01[1:]),
+            reversed(t10[1:]), reversed(t11[1:]), reversed(alpha0[:-1]),
+            reversed(alpha1[:-1]), strict=True):
+        c0, c1 = f0 * b0, f1 * b1
+        nb0, nb1 = a00 * c0 + a01 * c1, a10 * c0 + a11 * c1
+        s = nb0 + nb1
+        if s < 1e-300:
+            s = 1e-300
         b0, b1 = nb0 / s, nb1 / s
-        g0, g1 = alpha0[i] * b0, alpha1[i] * b1
-        post[i] = g1 / max(g0 + g1, 1e-300)
+        g0, g1 = x0 * b0, x1 * b1
+        s = g0 + g1
+        if s < 1e-300:
+            s = 1e-300
+        post.append(g1 / s)
+    post.reverse()
+    post.append(alpha1[-1])
     return post
