@@ -266,6 +266,14 @@ def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
         np.testing.assert_array_equal(led[sel], want)
 
 
+def test_nlos_key_is_gtsam_symbol():
+    """Test that `nlos_key`, formed without calling GTSAM, is its Symbol key."""
+    from uwbfuse.graph.keys import nlos_key
+
+    for anchor, segment in ((0, 0), (3, 1), (4095, 7), (17, 10**6)):
+        assert nlos_key(anchor, segment) == gtsam.symbol("e", segment * 4096 + anchor)
+
+
 def test_one_wheel_covariance_equals_the_array_pass():
     """Test `planar_gaussian6` (one keyframe's wheel factor covariance in Python floats)
     against `gaussian_covariances(planar_covariance6(...))`, bit for bit."""

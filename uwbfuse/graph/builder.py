@@ -1282,11 +1282,12 @@ class GraphBuilder:
             return
         n = len(r_los)
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
-            p = np.clip(prior, 1e-3, 1.0 - 1e-3)
+            p = np.minimum(np.maximum(prior, 1e-3), 1.0 - 1e-3)  # np.clip's, cheaper
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
             lp_rob = np.logaddexp(robust_log_density(r_los, self.robust_sigma(), self.cfg.uwb),
                                   LOG_OUTLIER)
-            self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+            self.prequential[0] += float(np.sum(lp_mix))
+            self.prequential[1] += float(np.sum(lp_rob))
             d = lp_rob - lp_mix
             self._pq_n += n
             self._pq_sum += float(np.sum(d))
