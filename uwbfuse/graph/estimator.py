@@ -581,13 +581,13 @@ class GraphEstimator(EstimatorBase):
         any_moved = np.add.reduceat(moved, np.cumsum([0, *sizes[:-1]])) > 0
         for i, n, has in zip(queued, sizes, any_moved.tolist(), strict=True):
             rb = q[i]
-            gb, eb = g[off:off + n], e[off:off + n]
+            start, off = off, off + n
             if not rb.counted and b.time_of(rb.ka) <= stat_age:
                 rb.counted = True
-                b.add_smoothed_residuals(r_los[off:off + n], gb)
-            off += n
+                b.add_smoothed_residuals(r_los[start:off], g[start:off])
             if not has:
                 continue
+            gb, eb = g[start:off], e[start:off]
             changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if self._review_inc is None:
                 self._review_inc = Increment()
