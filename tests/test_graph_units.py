@@ -12,7 +12,9 @@ from uwbfuse.config import RobustKernel, WheelConfig
 from uwbfuse.nlos import (
     NlosModel,
     hmm_filter,
+    hmm_filter_by_anchor,
     hmm_smooth,
+    hmm_smooth_by_anchor,
     jump_log_likelihoods,
     residual_jumps,
     residual_jumps_by_anchor,
@@ -22,7 +24,12 @@ gtsam = pytest.importorskip("gtsam")
 
 from uwbfuse.graph.noise import robust_estimator, robust_weight  # noqa: E402
 from uwbfuse.graph.uwb import los_subset_search  # noqa: E402
-from uwbfuse.graph.wheel import WheelTrack, between_factor  # noqa: E402
+from uwbfuse.graph.wheel import (  # noqa: E402
+    WheelTrack,
+    between_factor,
+    planar_covariance6,
+    planar_gaussian6,
+)
 
 NS = 1_000_000_000
 
@@ -257,6 +264,75 @@ def test_residual_jumps_by_anchor_matches_one_call_per_anchor():
         want = residual_jumps(np.concatenate([[lead_t[anc]], t[sel]]),
                               np.concatenate([[lead_r[anc]], r[sel]]))[1:]
         np.testing.assert_array_equal(led[sel], want)
+
+
+def test_nlos_key_is_gtsam_symbol():
+    """Test that `nlos_key`, formed without calling GTSAM, is its Symbol key."""
+    from uwbfuse.graph.keys import nlos_key
+
+    for anchor, segment in ((0, 0), (3, 1), (4095, 7), (17, 10**6)):
+        assert nlos_key(anchor, segment) == gtsam.symbol("e", segment * 4096 + anchor)
+
+
+def test_one_wheel_covariance_equals_the_array_pass():
+    """Test `planar_gaussian6` (one keyframe's wheel factor covariance in Python floats)
+    against `gaussian_covariances(planar_covariance6(...))`, bit for bit."""
+    from uwbfuse.graph.noise import gaussian_covariances
+
+    rng = np.random.default_rng(8)
+    for i in range(500):
+        a = rng.normal(size=(3, 3)) * 10.0 ** rng.integers(-6, 0)
+        c = a @ a.T if i % 2 else a  # symmetric, and not
+        oop = tuple(rng.uniform(0.001, 0.3, 3).tolist())
+        np.testing.assert_array_equal(planar_gaussian6(c, oop),
+                                      gaussian_covariances(planar_covariance6(c, oop)))
+
+
+def test_residual_jumps_of_a_few_ranges_equal_the_vectorised_pass():
+    """Test the few-range (Python) path of `residual_jumps_by_anchor` against its numpy
+    pass, bit for bit: one keyframe's ranges, ties in time, gaps, outliers, leads."""
+    rng = np.random.default_rng(11)
+    for n in range(1, 17):
+        t = np.sort(rng.integers(0, NS, n))
+        t[n // 2:] = t[n // 2]  # ties
+        a = rng.integers(0, 4, n)
+        r = rng.normal(0.0, 0.6, n)  # some beyond JUMP_MAX_M
+        lead_t = t[0] - rng.integers(0, 2 * NS, 4)
+        lead_r = rng.normal(0.0, 0.3, 4)
+        big = np.concatenate([t, t[-1] + 10 * NS + np.arange(20)])  # > the few: numpy
+        for lt, lr in ((None, None), (lead_t, lead_r)):
+            few = residual_jumps_by_anchor(t, a, r, lt, lr)
+            ref = residual_jumps_by_anchor(big, np.concatenate([a, np.full(20, 9)]),
+                                           np.concatenate([r, np.zeros(20)]), None if lt is None
+                                           else np.append(lt, np.zeros(6)), None if lr is None
+                                           else np.append(lr, np.zeros(6)))[:n]
+            np.testing.assert_array_equal(few, ref)
+
+
+def test_hmm_over_several_anchors_equals_one_call_per_anchor():
+    """Test `hmm_filter_by_anchor` and `hmm_smooth_by_anchor` against `hmm_filter` and
+    `hmm_smooth` anchor by anchor, bit for bit (with jump evidence)."""
+    rng = np.random.default_rng(3)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    n = 50
+    a = rng.integers(0, 4, n)
+    ll_l, ll_n = rng.normal(-1.0, 2.0, n), rng.normal(-1.0, 2.0, n)
+    jl = jump_log_likelihoods(rng.normal(0.0, 0.2, n), np.full(n, 0.3), m)
+    p_last = np.array([0.1, 0.5, 0.9, 0.3])
+    p_each = p_last.copy()
+    g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, m.p_switch, m.p_nlos, p_last, jl)
+    p0 = rng.uniform(0.0, 1.0, n)
+    gs = hmm_smooth_by_anchor(a, ll_l, ll_n, m.p_switch, m.p_nlos, jl, p0)
+    for anc in range(4):
+        sel = np.flatnonzero(a == anc)
+        g1, last, prior1 = hmm_filter(ll_l[sel], ll_n[sel], m.p_switch, m.p_nlos,
+                                      p_each[anc], jl[sel])
+        np.testing.assert_array_equal(g[sel], g1)
+        np.testing.assert_array_equal(prior[sel], prior1)
+        assert p_last[anc] == last
+        np.testing.assert_array_equal(
+            gs[sel], hmm_smooth(ll_l[sel], ll_n[sel], m.p_switch, m.p_nlos, jl[sel],
+                                float(p0[sel[0]])))
 
 
 def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors():

@@ -60,6 +60,7 @@ from uwbfuse.streams import AnchorMap
 F64 = NDArray[np.float64]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_FEW_JUMPS = 16  # `residual_jumps_by_anchor` in Python up to this many ranges
 
 
 @dataclass(frozen=True)
@@ -247,14 +248,12 @@ def jump_log_likelihoods(
     d = np.where(np.isnan(delta), 0.0, delta)  # finite otherwise (`residual_jumps`)
     m = np.maximum(excess, 0.1)
 
-    def ll(x: np.ndarray, s: float) -> np.ndarray:
-        return np.logaddexp(-0.5 * (x / s) ** 2 - math.log(s) - _LOG_SQRT_2PI, LOG_OUTLIER)
-
-    out = np.empty((len(d), 2, 2))
-    out[:, 0, 0] = ll(d, s_stay_l)
-    out[:, 0, 1] = ll(d - m, s_jump)
-    out[:, 1, 0] = ll(d + m, s_jump)
-    out[:, 1, 1] = ll(d, s_stay_n)
+    # the four transitions' Gaussians floored as outliers, in one pass: (N,4) -> (N,2,2)
+    sig = np.array([s_stay_l, s_jump, s_jump, s_stay_n])
+    log_sig = np.array([math.log(x) for x in sig.tolist()])
+    x = np.stack([d, d - m, d + m, d], axis=1)
+    out = np.logaddexp(-0.5 * (x / sig) ** 2 - log_sig - _LOG_SQRT_2PI,
+                       LOG_OUTLIER).reshape(-1, 2, 2)
     out[np.isnan(delta)] = 0.0
     return out
 
@@ -276,7 +275,10 @@ def residual_jumps_by_anchor(
     """`residual_jumps` of the ranges of several anchors at once, each anchor's ranges in
     time order. `lead_t`, `lead_r` (indexed by anchor): each anchor's previous range (stamp
     ns, residual m), which leads its chain; without them an anchor's first range has no
-    jump (NaN). One vectorised call instead of one per anchor."""
+    jump (NaN). One vectorised call instead of one per anchor (a few ranges: in Python,
+    the same operations)."""
+    if len(t_ns) <= _FEW_JUMPS:
+        return _residual_jumps_few(t_ns, anchor, r, lead_t, lead_r)
     order = np.lexsort((t_ns, anchor))
     a_s = anchor[order]
     t_s = np.asarray(t_ns, np.int64)[order]
@@ -297,6 +299,28 @@ def residual_jumps_by_anchor(
     return out
 
 
+def _residual_jumps_few(
+    t_ns: np.ndarray, anchor: np.ndarray, r: np.ndarray,
+    lead_t: np.ndarray | None, lead_r: np.ndarray | None,
+) -> np.ndarray:
+    """`residual_jumps_by_anchor` of a few ranges in Python numbers (one keyframe's)."""
+    t, a = np.asarray(t_ns, np.int64).tolist(), np.asarray(anchor).tolist()
+    rr = np.asarray(r, np.float64).tolist()
+    out = [0.0] * len(t)
+    prev: dict[int, tuple[int, float]] = {}  # each anchor's previous range
+    for i in sorted(range(len(t)), key=lambda i: (a[i], t[i])):  # stable, as lexsort
+        if a[i] in prev:
+            t_prev, r_prev = prev[a[i]]
+        elif lead_t is None or lead_r is None:  # NaN below (the gap)
+            t_prev, r_prev = int(np.iinfo(np.int64).min // 2), 0.0
+        else:
+            t_prev, r_prev = int(lead_t[a[i]]), float(lead_r[a[i]])
+        d = rr[i] - r_prev
+        out[i] = math.nan if (t[i] - t_prev) > JUMP_MAX_GAP_NS or not abs(d) < JUMP_MAX_M else d
+        prev[a[i]] = (t[i], rr[i])
+    return np.array(out, dtype=np.float64)
+
+
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
     jump_ll: np.ndarray | None = None,
@@ -309,14 +333,56 @@ def hmm_filter(
     p_nlos; `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs each transition by the
     change of residual it implies.
     """
-    out, priors = [], []
-    p = p0
-    # Python floats in the loop (numpy item access was most of its time; the same values)
+    d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
+    out, p, priors = _filter_chain(d, jl, p_switch, p_nlos, p0)
+    return np.array(out, dtype=np.float64), p, np.array(priors, dtype=np.float64)
+
+
+def hmm_filter_by_anchor(
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    p_nlos: float, p_last: np.ndarray, jump_ll: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`hmm_filter` of the ranges of several anchors (each anchor's in time order): P(NLOS)
+    and the predicted prior per range. Anchor a's chain starts from `p_last[a]` and leaves
+    its last P(NLOS) there (in place). The inputs are prepared once for all ranges (the
+    same numbers as anchor by anchor: every step is elementwise)."""
+    d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
+    g, prior = [0.0] * len(d), [0.0] * len(d)
+    for a, rows in _rows_by_anchor(anchor):
+        out, p_last[a], priors = _filter_chain(
+            [d[i] for i in rows], None if jl is None else [jl[i] for i in rows],
+            p_switch, p_nlos, p_last[a])
+        for i, x, q in zip(rows, out, priors, strict=True):
+            g[i], prior[i] = x, q
+    return np.array(g, dtype=np.float64), np.array(prior, dtype=np.float64)
+
+
+def _rows_by_anchor(anchor: np.ndarray) -> list[tuple[int, list[int]]]:
+    """(anchor, its rows in order) for each anchor of `anchor` (N,), anchors ascending."""
+    rows: dict[int, list[int]] = {}
+    for i, a in enumerate(np.asarray(anchor).tolist()):
+        rows.setdefault(a, []).append(i)
+    return sorted(rows.items())
+
+
+def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray | None
+                   ) -> tuple[list[float], list | None]:
+    """`hmm_filter`'s per-range inputs as Python lists: the clipped log-likelihood ratio
+    and the jump evidence scaled to its largest entry (N,2,2)."""
     d = np.minimum(np.maximum(ll_nlos - ll_los, -50.0), 50.0).tolist()  # np.clip's
-    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
-    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
     jl = (None if jump_ll is None
           else np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True)).tolist())
+    return d, jl
+
+
+def _filter_chain(d: list[float], jl: list | None, p_switch: float, p_nlos: float,
+                  p0: float) -> tuple[list[float], float, list[float]]:
+    """`hmm_filter`'s loop over one chain in Python floats (numpy item access was most of
+    its time; the same values)."""
+    out, priors = [], []
+    p = p0
+    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
+    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
     for i in range(len(d)):
         if jl is None:
             prior = (1.0 - p_switch) * p + p_switch * p_nlos
@@ -330,7 +396,7 @@ def hmm_filter(
         lo = math.log(prior / (1.0 - prior)) + d[i]
         p = 1.0 / (1.0 + math.exp(-lo))
         out.append(p)
-    return np.array(out, dtype=np.float64), p, np.array(priors, dtype=np.float64)
+    return out, p, priors
 
 
 def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
@@ -348,41 +414,89 @@ def hmm_smooth(
     `jump_ll` (N,2,2, see `jump_log_likelihoods`) weighs the transition into each range;
     `p0` is P(NLOS) of the first range before its own evidence (default: p_nlos).
     """
-    n = len(ll_los)
-    if n == 0:
+    if len(ll_los) == 0:
         return np.zeros(0)
+    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    return np.array(_smooth_chain(e0, e1, *tr, p_nlos, p0), dtype=np.float64)
+
+
+def hmm_smooth_by_anchor(
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    p_nlos: float, jump_ll: np.ndarray | None, p0: np.ndarray,
+) -> np.ndarray:
+    """`hmm_smooth` of the ranges of several anchors (each anchor's in time order), each
+    anchor's chain from `p0` (N,) of its first range. The inputs are prepared once for all
+    ranges (the same numbers as anchor by anchor: every step is elementwise)."""
+    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    p0_list = np.asarray(p0, np.float64).tolist()
+    g = [0.0] * len(e0)
+    for _, rows in _rows_by_anchor(anchor):
+        post = _smooth_chain([e0[i] for i in rows], [e1[i] for i in rows],
+                             *([t[i] for i in rows] for t in tr), p_nlos, p0_list[rows[0]])
+        for i, x in zip(rows, post, strict=True):
+            g[i] = x
+    return np.array(g, dtype=np.float64)
+
+
+def _smooth_inputs(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float,
+    jump_ll: np.ndarray | None,
+) -> tuple[list[float], list[float], tuple[list[float], ...]]:
+    """`hmm_smooth`'s per-range inputs as Python lists: the two likelihoods scaled to
+    their larger one, and the transition matrix into each range (t00, t01, t10, t11),
+    each entry scaled by the jump evidence if any."""
+    n = len(ll_los)
     a = np.array([[1.0 - p_switch * p_nlos, p_switch * p_nlos],
                   [p_switch * (1.0 - p_nlos), 1.0 - p_switch * (1.0 - p_nlos)]])
     m = np.maximum(ll_los, ll_nlos)
-    e = np.stack([np.exp(ll_los - m), np.exp(ll_nlos - m)], axis=1)
-    # per-step transition matrices: `a`, each entry scaled by the jump evidence if any
+    e0, e1 = np.exp(ll_los - m).tolist(), np.exp(ll_nlos - m).tolist()
     if jump_ll is None:
         tr = np.broadcast_to(a, (n, 2, 2))
     else:
         tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
-    t00, t01 = tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist()
-    t10, t11 = tr[:, 1, 0].tolist(), tr[:, 1, 1].tolist()
+    return e0, e1, (tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist(), tr[:, 1, 0].tolist(),
+                    tr[:, 1, 1].tolist())
+
+
+def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[float],
+                  t10: list[float], t11: list[float], p_nlos: float, p0: float | None
+                  ) -> list[float]:
+    """`hmm_smooth`'s forward and backward passes over one chain in Python floats (numpy
+    item access was most of the loops' time; the same values)."""
     q0 = p_nlos if p0 is None else min(max(p0, 1e-4), 1.0 - 1e-4)
-    cur = np.array([1.0 - q0, q0]) * e[0]
-    x0, x1 = (cur / cur.sum()).tolist()
-    e0, e1 = e[:, 0].tolist(), e[:, 1].tolist()
-    # the forward messages in Python lists (numpy item access was most of the loops' time)
-    alpha0, alpha1 = [x0] * n, [x1] * n
-    for i in range(1, n):
-        y0 = (x0 * t00[i] + x1 * t10[i]) * e0[i]
-        y1 = (x0 * t01[i] + x1 * t11[i]) * e1[i]
-        s = max(y0 + y1, 1e-300)
+    c0, c1 = (1.0 - q0) * e0[0], q0 * e1[0]
+    s = c0 + c1
+    x0, x1 = c0 / s, c1 / s
+    # forward messages; `max(s, 1e-300)` written as a test (the same value, NaN included)
+    alpha0, alpha1 = [x0], [x1]
+    for a00, a01, a10, a11, f0, f1 in zip(t00[1:], t01[1:], t10[1:], t11[1:], e0[1:], e1[1:],
+                                          strict=True):
+        y0 = (x0 * a00 + x1 * a10) * f0
+        y1 = (x0 * a01 + x1 * a11) * f1
+        s = y0 + y1
+        if s < 1e-300:
+            s = 1e-300
         x0, x1 = y0 / s, y1 / s
-        alpha0[i], alpha1[i] = x0, x1
-    post = [0.0] * n
-    post[-1] = alpha1[-1]
+        alpha0.append(x0)
+        alpha1.append(x1)
+    # backward messages into range i from range i + 1, newest first
+    post = []
     b0, b1 = 1.0, 1.0
-    for i in range(n - 2, -1, -1):
-        c0, c1 = e0[i + 1] * b0, e1[i + 1] * b1
-        j = i + 1
-        nb0, nb1 = t00[j] * c0 + t01[j] * c1, t10[j] * c0 + t11[j] * c1
-        s = max(nb0 + nb1, 1e-300)
+    for f0, f1, a00, a01, a10, a11, x0, x1 in zip(
+            reversed(e0[1:]), reversed(e1[1:]), reversed(t00[1:]), reversed(t01[1:]),
+            reversed(t10[1:]), reversed(t11[1:]), reversed(alpha0[:-1]),
+            reversed(alpha1[:-1]), strict=True):
+        c0, c1 = f0 * b0, f1 * b1
+        nb0, nb1 = a00 * c0 + a01 * c1, a10 * c0 + a11 * c1
+        s = nb0 + nb1
+        if s < 1e-300:
+            s = 1e-300
         b0, b1 = nb0 / s, nb1 / s
-        g0, g1 = alpha0[i] * b0, alpha1[i] * b1
-        post[i] = g1 / max(g0 + g1, 1e-300)
-    return np.array(post, dtype=np.float64)
+        g0, g1 = x0 * b0, x1 * b1
+        s = g0 + g1
+        if s < 1e-300:
+            s = 1e-300
+        post.append(g1 / s)
+    post.reverse()
+    post.append(alpha1[-1])
+    return post

@@ -27,12 +27,11 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
 from uwbfuse.config import Config
 from uwbfuse.errors import AnchorMapError
 from uwbfuse.estimator import EstimatorBase, Method, PoseEstimate
-from uwbfuse.filters.models import pose_covariance
+from uwbfuse.filters.models import gate_threshold, pose_covariance
 from uwbfuse.filters.wls import EpochFixer, TagFix, TrackHeading, yaw_quat
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
 
@@ -108,7 +107,7 @@ class LkfEstimator(EstimatorBase):
         self.kf = ConstantVelocityKF(self.fixer.dim, config.lkf.accel_psd)
         self.lever = np.asarray(config.extrinsics.tag_in_base, dtype=np.float64)
         self.gate = (
-            float(chi2.ppf(config.filter.gate_probability, self.fixer.dim))
+            gate_threshold(config.filter.gate_probability, self.fixer.dim)
             if config.filter.gating else math.inf
         )
         self.heading = TrackHeading(config.wls.min_track)

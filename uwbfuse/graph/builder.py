@@ -54,14 +54,15 @@ from uwbfuse.constants import (
 )
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
-from uwbfuse.graph.noise import diagonal, pose_sigmas, robust_weight
+from uwbfuse.graph.noise import diagonal, pose_sigmas, range_noise_maker, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
 from uwbfuse.graph.uwb import (
     los_bias_key,
     nlos_state_factors,
-    range_factor,
+    range_factor_keyed,
     robust_log_density,
 )
+from uwbfuse.graph.values import insert_bias, insert_double, insert_pose3
 from uwbfuse.graph.wheel import (
     FEW_QUERIES,
     WheelTrack,
@@ -71,7 +72,12 @@ from uwbfuse.graph.wheel import (
     se2_between,
     se2_to_pose3,
 )
-from uwbfuse.nlos import NlosModel, hmm_filter, jump_log_likelihoods, residual_jumps_by_anchor
+from uwbfuse.nlos import (
+    NlosModel,
+    hmm_filter_by_anchor,
+    jump_log_likelihoods,
+    residual_jumps_by_anchor,
+)
 from uwbfuse.positioning.initialisation import applied_lever, range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.start import anchors_observe_height, planar_height
@@ -307,6 +313,7 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
 _ROT_IDENTITY = gtsam.Rot3()  # the range factors' tag offset is a pure translation
 
 
+
 class GraphBuilder:
     """Turns buffered sensor data into keyframes and factors (see the module docstring)."""
 
@@ -378,6 +385,12 @@ class GraphBuilder:
         self._init_records(record, seeding)
         self._init_range_scale(start)
         self._init_online_choice()
+        # what every range factor takes: its noise model maker, each anchor's L(a) and LOS
+        # bias key (`range_factors`)
+        self._range_keys = (
+            range_noise_maker(config.uwb.robust_kernel, config.uwb.kernel_threshold),
+            [L(a) for a in range(len(anchors))],
+            [los_bias_key(a, self.with_bias) for a in range(len(anchors))])
 
     def _preintegration_params(self) -> gtsam.PreintegrationCombinedParams | None:
         """The IMU factors' preintegration parameters: the constant-velocity prior's virtual
@@ -629,8 +642,11 @@ class GraphBuilder:
         The IMU prediction starts from the state (pose_a, vel_a) at t_a and the current bias.
         """
         if self.has_wheel and len(self.wheel):
-            dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
-            rel = se2_between(dd[0][None, :], dd[1:])
+            if len(t_b) < FEW_QUERIES:  # one epoch's prediction: Python floats, bit-identical
+                rel = self.wheel.between_few(t_a, np.asarray(t_b, np.int64).tolist())
+            else:
+                dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
+                rel = se2_between(dd[0][None, :], dd[1:])
             return [se2_to_pose3(r) for r in rel]
         if self.cv_motion:  # constant velocity (map frame) carried into the base frame
             step = pose_a.rotation().unrotate(np.asarray(vel_a, np.float64))
@@ -895,7 +911,7 @@ class GraphBuilder:
             pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
             new_pose, new_vel = pred.pose(), pred.velocity()
             inc.values.insert(V(k), new_vel)
-            inc.values.insert(B(k), bias_a)
+            insert_bias(inc.values, B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
         if rel is not None:
@@ -927,7 +943,7 @@ class GraphBuilder:
             inc.graph.add(motion[-1])
         if self.recent is not None and pieces is not None:
             self.recent.add(ka, motion, bias_a, pieces)
-        inc.values.insert(X(k), new_pose)
+        insert_pose3(inc.values, X(k), new_pose)
         inc.stamps[X(k)] = self.stamp(k)
         t_p, p_p, q_p, c_p = self.poses.take(t_b)
         if len(t_p):  # each at its own time, through the motion since X(ka) (as ranges)
@@ -1015,11 +1031,8 @@ class GraphBuilder:
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
             ll_n = ll_n + evidence
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
-            for anc in np.unique(a):
-                sel = np.flatnonzero(a == anc)
-                g[sel], self.anchor_p[anc], prior[sel] = hmm_filter(
-                    ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, self.anchor_p[anc],
-                    None if jump is None else jump[sel])
+            g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, mix.p_switch, mix.p_nlos,
+                                            self.anchor_p, jump)
             self._online_m_step(r_los, r_nlos, g)
             settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)
             if np.any(settled):
@@ -1029,8 +1042,7 @@ class GraphBuilder:
                 g[:] = 0.0
         else:
             e_pred = np.zeros(len(t))
-        slots = [self.range_factors(inc, ka, int(a[j]), float(z[j]), tag_kf[j], int(seg[j]),
-                                    float(g[j]), float(e_pred[j])) for j in range(len(t))]
+        slots = self.range_factors(inc, ka, a, z, tag_kf, seg, g, e_pred)
         sig_l = self.robust_sigma() if self.robust_online else (
             mix.sigma_los if self.nlos else self.cfg.uwb.sigma)
         uwb = self.cfg.uwb
@@ -1080,35 +1092,51 @@ class GraphBuilder:
         leads)."""
         delta = residual_jumps_by_anchor(t, a, r, self._jump_t, self._jump_r)
         # each anchor's newest range leads its next keyframe's chain (t is time-sorted)
-        lead, last = np.unique(a[::-1], return_index=True)
-        last = len(a) - 1 - last
-        self._jump_r[lead], self._jump_t[lead] = r[last], t[last]
+        last = {anc: i for i, anc in enumerate(a.tolist())}  # each anchor's last row
+        for anc, i in last.items():
+            self._jump_r[anc], self._jump_t[anc] = r[i], t[i]
         return jump_log_likelihoods(delta, excess, self.mixture)
 
     def range_factors(
-        self, inc: Increment, ka: int, a: int, z: float, tag_kf: np.ndarray, seg: int, g: float,
-        e_guess: float,
-    ) -> list[int]:
-        """Add one range's LOS and NLOS factors (weights 1-g, g); return their positions."""
+        self, inc: Increment, ka: int, a: np.ndarray, z: np.ndarray, tag_kf: np.ndarray,
+        seg: np.ndarray, g: np.ndarray, e_guess: np.ndarray, rows: list[int] | None = None,
+    ) -> list[list[int]]:
+        """Add the LOS and NLOS factors (weights 1-g, g) of ranges attached to X(ka), in
+        order: anchors `a`, ranges `z` m, tag positions (N,3) in the keyframe's base frame,
+        NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,), of
+        the `rows` given (default all); return each range's factor positions in
+        `inc.graph`."""
         mix = self.mixture
         uwb = self.cfg.uwb
-        t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf)
         if self.robust_online:
             sig_l = self.smoothed_robust_sigma or self.robust_sigma()
         else:
             sig_l = (self.smoothed_sigma_los or mix.sigma_los) if self.nlos else uwb.sigma
-        out = []
-        w_l = 1.0 - g
-        if w_l > MIN_WEIGHT:
-            out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, sig_l / math.sqrt(w_l), t_tag, uwb,
-                                       los_bias_key(a, self.with_bias)))
-        if g > MIN_WEIGHT:
-            key = self._nlos_state(inc, a, seg, e_guess)
-            out.append(inc.graph.size())
-            inc.graph.add(range_factor(ka, a, z, mix.sigma_nlos / math.sqrt(g), t_tag, uwb,
-                                       key))
-        return out
+        graph = inc.graph
+        pose_key = X(ka)
+        noise, anchor_key, los_key = self._range_keys
+        slots = []
+        # Python floats: a keyframe has a few ranges, where numpy's per-call cost would
+        # exceed the arithmetic (the same IEEE operations either way)
+        a_l, z_l = np.asarray(a).tolist(), np.asarray(z, np.float64).tolist()
+        seg_l, g_l = np.asarray(seg).tolist(), np.asarray(g, np.float64).tolist()
+        e_l = np.asarray(e_guess, np.float64).tolist()
+        for j in range(len(a_l)) if rows is None else rows:
+            aj, zj, sj, gj, ej = a_l[j], z_l[j], seg_l[j], g_l[j], e_l[j]
+            t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf[j])
+            out = []
+            w_l = 1.0 - gj
+            if w_l > MIN_WEIGHT:
+                out.append(graph.size())
+                graph.add(range_factor_keyed(pose_key, anchor_key[aj], los_key[aj], zj,
+                                             noise(sig_l / math.sqrt(w_l)), t_tag))
+            if gj > MIN_WEIGHT:
+                key = self._nlos_state(inc, aj, sj, ej)
+                out.append(graph.size())
+                graph.add(range_factor_keyed(pose_key, anchor_key[aj], key, zj,
+                                             noise(mix.sigma_nlos / math.sqrt(gj)), t_tag))
+            slots.append(out)
+        return slots
 
     def _update_scale(self, a: np.ndarray, r: np.ndarray, h: np.ndarray, w: np.ndarray) -> None:
         """Recursive least squares of each anchor's range scale error k from LOS-weighted
@@ -1162,7 +1190,7 @@ class GraphBuilder:
             if (anchor, seg) not in self.e_created:
                 nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), None,
                                    self.mixture)
-                inc.values.insert(key, guess)
+                insert_double(inc.values, key, guess)
             self.e_created[(anchor, seg)] = now
             inc.stamps[key] = now
             # the anchor's later states chain back to this one: they stay as long
@@ -1173,7 +1201,7 @@ class GraphBuilder:
         if self.e_seg[anchor] >= 0 and self.e_stamp[anchor] > now - self.g.lag + 1.0:
             prev = nlos_key(anchor, int(self.e_seg[anchor]))
         nlos_state_factors(inc.graph, key, float(self.range_bias[anchor]), prev, self.mixture)
-        inc.values.insert(key, guess)
+        insert_double(inc.values, key, guess)
         inc.stamps[key] = now
         self.e_created[(anchor, seg)] = now
         self.e_stamp[anchor] = now
@@ -1254,11 +1282,12 @@ class GraphBuilder:
             return
         n = len(r_los)
         if self.prequential_n + n >= MIN_PREQUENTIAL_RANGES:
-            p = np.clip(prior, 1e-3, 1.0 - 1e-3)
+            p = np.minimum(np.maximum(prior, 1e-3), 1.0 - 1e-3)  # np.clip's, cheaper
             lp_mix = np.logaddexp(np.log1p(-p) + ll_l, np.log(p) + ll_n)
             lp_rob = np.logaddexp(robust_log_density(r_los, self.robust_sigma(), self.cfg.uwb),
                                   LOG_OUTLIER)
-            self.prequential += (float(np.sum(lp_mix)), float(np.sum(lp_rob)))
+            self.prequential[0] += float(np.sum(lp_mix))
+            self.prequential[1] += float(np.sum(lp_rob))
             d = lp_rob - lp_mix
             self._pq_n += n
             self._pq_sum += float(np.sum(d))

@@ -41,7 +41,6 @@ import copy
 import dataclasses
 import logging
 import time
-from collections import deque
 from typing import Any
 
 import gtsam
@@ -69,14 +68,20 @@ from uwbfuse.constants import (
 from uwbfuse.errors import EstimatorError
 from uwbfuse.estimator import Estimator, EstimatorBase, Method, PoseEstimate, RangeClasses
 from uwbfuse.graph import covariance, noise_fit, offline
-from uwbfuse.graph.builder import GraphBuilder, Increment, ReviewBatch
+from uwbfuse.graph.builder import GraphBuilder, Increment
 from uwbfuse.graph.evidence_window import EvidenceWindows, window_mask
 from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.online import OnlineSmoother
+from uwbfuse.graph.review_queue import ReviewQueue
 from uwbfuse.graph.uwb import los_subset_search
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
-from uwbfuse.nlos import NlosModel, hmm_smooth, jump_log_likelihoods, residual_jumps_by_anchor
+from uwbfuse.nlos import (
+    NlosModel,
+    hmm_smooth_by_anchor,
+    jump_log_likelihoods,
+    residual_jumps_by_anchor,
+)
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
 from uwbfuse.streams import NS_PER_S, AnchorMap, PoseStream
@@ -142,7 +147,7 @@ class GraphEstimator(EstimatorBase):
         self._batch: offline.BatchResult | None = None
         # the first keyframe's final pose and covariance, for `pre_start` (set by `finish`)
         self._first_kf: tuple[gtsam.Pose3, np.ndarray | None] | None = None
-        self._reviews: deque[ReviewBatch] = deque()
+        self._reviews = ReviewQueue()
         self._review_inc: Increment | None = None
         self._n_reviewed = 0
         self._n_switches = 0
@@ -458,62 +463,65 @@ class GraphEstimator(EstimatorBase):
         (an escape from the local optimum that EM alone stays in).
         """
         now = b.time_of(b.k)
-        batches, poses = self._reviewable(sm, b, now)
-        if not batches:
+        queued, poses = self._reviewable(sm, b, now)
+        if not queued:
             return
         mix = b.mixture
         if b.smoothed_sigma_los is not None:  # residuals at the smoothed estimate
             mix = copy.copy(mix)
             mix.sigma_los = b.smoothed_sigma_los
-        anchor = np.concatenate([rb.anchor for rb in batches])
-        z = np.concatenate([rb.z for rb in batches])
-        t = np.concatenate([rb.t_ns for rb in batches])
-        prior = np.concatenate([rb.prior for rb in batches])
-        p = np.concatenate([rb.tag_kf @ poses[rb.ka][:3, :3].T + poses[rb.ka][:3, 3]
-                            for rb in batches])
+        q = self._reviews
+        cols = q.columns()
+        if queued[-1] == len(queued) - 1:  # the queue's first batches (all but on a failure)
+            rows: slice | np.ndarray = slice(0, q.rows(queued[-1]).stop)
+        else:
+            rows = np.concatenate([np.arange(q.rows(i).start, q.rows(i).stop) for i in queued])
+        anchor, z, t, prior = (cols[c][rows] for c in ("anchor", "z", "t_ns", "prior"))
+        batches = [q[i] for i in queued]
+        # batch by batch: the same products as the keyframes' (BLAS rounds by shape)
+        p = np.concatenate([rb.tag_kf @ poses[rb.ka][0] + poses[rb.ka][1] for rb in batches])
         h = np.linalg.norm(p - self.anchors.positions[anchor], axis=1)
         d = b.class_offset(anchor)
-        e = self._smoothed_excess(sm, b, anchor, np.concatenate([rb.seg for rb in batches]),
-                                  d + mix.mu_nlos)
+        e = self._smoothed_excess(sm, b, anchor, cols["seg"][rows], d + mix.mu_nlos)
         r_los = z - h - d
         r_nlos = z - h - e
-        g_cur = np.concatenate([rb.g for rb in batches])
+        g_cur = cols["g"][rows].copy()
         if REVIEW_SEARCH:
             r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur)
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
-        ll_n = ll_n + np.concatenate([rb.evidence for rb in batches])  # the classifier's
-        g = np.empty(len(z))
-        sels = [np.flatnonzero(anchor == a) for a in np.unique(anchor).tolist()]
+        ll_n = ll_n + cols["evidence"][rows]  # the classifier's
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
-        for sel in sels:
-            g[sel] = hmm_smooth(ll_l[sel], ll_n[sel], mix.p_switch, mix.p_nlos, jl[sel],
-                                float(prior[sel[0]]))
-        self._replace_moved(b, batches, now, g, g_cur, e, r_los)
+        g = hmm_smooth_by_anchor(anchor, ll_l, ll_n, mix.p_switch, mix.p_nlos, jl, prior)
+        self._replace_moved(b, queued, now, g, g_cur, e, r_los)
 
     def _reviewable(self, sm: OnlineSmoother, b: GraphBuilder, now: int
-                    ) -> tuple[list[ReviewBatch], dict[int, np.ndarray]]:
-        """The range batches `_review` classifies again (old enough, clear of what the
-        next update marginalises; older ones leave the queue) and their keyframes' smoothed
-        poses (4x4, map frame)."""
+                    ) -> tuple[list[int], dict[int, tuple[np.ndarray, np.ndarray]]]:
+        """The range batches `_review` classifies again (their positions in the queue: old
+        enough, clear of what the next update marginalises; older ones leave the queue)
+        and their keyframes' smoothed poses (rotation transposed (3,3) and translation (3,)
+        m of the base in the map frame)."""
         # the replacements go in with the next update, which adds `_chunk` keyframes and
         # marginalises by as much: stay clear of what it will remove
         margin = REVIEW_MARGIN_S + self._chunk / self.cfg.graph.keyframe_rate
         oldest = now - round((self.cfg.graph.lag - margin) * NS_PER_S)
-        while self._reviews and b.time_of(self._reviews[0].ka) < oldest:
-            self._reviews.popleft()
-        horizon = now - round(REVIEW_MIN_AGE_S * NS_PER_S)
-        poses: dict[int, np.ndarray] = {}
-        batches = []
-        for rb in self._reviews:
-            if b.time_of(rb.ka) > horizon:
+        q = self._reviews
+        while q and b.time_of(q[0].ka) < oldest:
+            q.popleft()
+        # time_of(ka) > horizon: ka > last_ka
+        last_ka = (now - round(REVIEW_MIN_AGE_S * NS_PER_S) - b.t0) // b.period_ns
+        poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        queued = []
+        for i, rb in enumerate(q):
+            if rb.ka > last_ka:
                 break
             if rb.ka not in poses:
                 try:
-                    poses[rb.ka] = sm.pose(rb.ka).matrix()
+                    m = sm.pose(rb.ka).matrix()
                 except (RuntimeError, IndexError):
                     continue
-            batches.append(rb)
-        return batches, poses
+                poses[rb.ka] = (m[:3, :3].T, m[:3, 3])
+            queued.append(i)
+        return queued, poses
 
     def _smoothed_excess(self, sm: OnlineSmoother, b: GraphBuilder, anchor: np.ndarray,
                          seg: np.ndarray, default: np.ndarray) -> np.ndarray:
@@ -557,36 +565,39 @@ class GraphEstimator(EstimatorBase):
         exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
         return r_los, r_los - exc[anchor]
 
-    def _replace_moved(self, b: GraphBuilder, batches: list[ReviewBatch], now: int,
+    def _replace_moved(self, b: GraphBuilder, queued: list[int], now: int,
                        g: np.ndarray, g_cur: np.ndarray, e: np.ndarray,
                        r_los: np.ndarray) -> None:
-        """After `_review`'s E-step (responsibilities `g`, were `g_cur`): the ranges whose
-        responsibility moved by more than REVIEW_CHANGE get new factors in the next update;
-        the batches old enough feed the smoothed LOS sigma once."""
+        """After `_review`'s E-step (responsibilities `g`, were `g_cur`, of the batches at
+        `queued` in the queue): the ranges whose responsibility moved by more than
+        REVIEW_CHANGE get new factors in the next update; the batches old enough feed the
+        smoothed LOS sigma once."""
         off = 0
         stat_age = now - round(SMOOTHED_STAT_AGE_S * NS_PER_S)
         # which batches have a range to replace, in one pass (most have none)
         moved = np.abs(g - g_cur) > REVIEW_CHANGE
-        sizes = [len(rb.z) for rb in batches]
+        q = self._reviews
+        sizes = [len(q[i].z) for i in queued]
         any_moved = np.add.reduceat(moved, np.cumsum([0, *sizes[:-1]])) > 0
-        for rb, n, has in zip(batches, sizes, any_moved.tolist(), strict=True):
-            gb, eb = g[off:off + n], e[off:off + n]
+        for i, n, has in zip(queued, sizes, any_moved.tolist(), strict=True):
+            rb = q[i]
+            start, off = off, off + n
             if not rb.counted and b.time_of(rb.ka) <= stat_age:
                 rb.counted = True
-                b.add_smoothed_residuals(r_los[off:off + n], gb)
-            off += n
+                b.add_smoothed_residuals(r_los[start:off], g[start:off])
             if not has:
                 continue
+            gb, eb = g[start:off], e[start:off]
             changed = np.flatnonzero(np.abs(gb - rb.g) > REVIEW_CHANGE)
             if self._review_inc is None:
                 self._review_inc = Increment()
             inc = self._review_inc
-            for j in changed.tolist():
+            rows = changed.tolist()
+            for j in rows:
                 inc.remove.extend(rb.factors[j])
-                pos = b.range_factors(inc, rb.ka, int(rb.anchor[j]), float(rb.z[j]),
-                                      rb.tag_kf[j], int(rb.seg[j]), float(gb[j]), float(eb[j]))
-                inc.replaced.append((rb, j, pos))
-                rb.g[j] = gb[j]
+            slots = b.range_factors(inc, rb.ka, rb.anchor, rb.z, rb.tag_kf, rb.seg, gb, eb, rows)
+            inc.replaced.extend((rb, j, pos) for j, pos in zip(rows, slots, strict=True))
+            q.set_g(i, changed, gb[changed])
             b.records.g_online[rb.record][changed] = gb[changed]
             self._n_reviewed += len(changed)
 

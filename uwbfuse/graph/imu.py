@@ -156,17 +156,18 @@ class ImuBuffer:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
         i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
         i1 = int(np.searchsorted(t, t1, side="left"))
-        idx = np.arange(i0, max(i1, i0 + 1))
-        starts = np.maximum(t[idx], t0)
+        idx = slice(i0, max(i1, i0 + 1))  # the samples covering [t0, t1] (views)
+        ts = t[idx]
+        starts = np.maximum(ts, t0)
         ends = np.empty_like(starts)
-        ends[:-1] = t[idx[1:]]
+        ends[:-1] = ts[1:]
         ends[-1] = t1
         ends = np.minimum(ends, t1)
         gyro, acc = self._gyro[idx], self._acc[idx]
         hold_ns = round(MAX_EXTRAPOLATION_S * NS_PER_S)
-        held = ends - t[idx] > hold_ns
-        if np.any(held):  # a dropout: split each long hold into the sample, then the guess
-            cut = np.maximum(np.minimum(t[idx] + hold_ns, ends), starts)
+        held = ends - ts > hold_ns
+        if held.any():  # a dropout: split each long hold into the sample, then the guess
+            cut = np.maximum(np.minimum(ts + hold_ns, ends), starts)
             starts = np.concatenate([starts, cut[held]])
             ends = np.concatenate([np.where(held, cut, ends), ends[held]])
             n = int(np.sum(held))

@@ -23,6 +23,11 @@ C = gtsam.symbol("c", 0)
 _MAX_ANCHORS = 4096
 
 
+_E = gtsam.symbol("e", 0)  # GTSAM's Symbol key: the character in the top 8 bits, the index
+
+
 def nlos_key(anchor: int, segment: int) -> int:
-    """Key of the NLOS bias state of `anchor` in time segment `segment` (both >= 0)."""
-    return gtsam.symbol("e", segment * _MAX_ANCHORS + anchor)
+    """Key of the NLOS bias state of `anchor` in time segment `segment` (both >= 0):
+    `gtsam.symbol("e", segment * 4096 + anchor)`, formed without the call (it is made
+    for every NLOS factor and review)."""
+    return _E | (segment * _MAX_ANCHORS + anchor)

@@ -8,6 +8,7 @@ range sigmas in metres, rotation sigmas in radians, translation sigmas in metres
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -43,6 +44,19 @@ def range_noise(
     if kernel is RobustKernel.NONE:
         return base
     return gtsam.noiseModel.Robust.Create(robust_estimator(kernel, threshold), base)
+
+
+def range_noise_maker(
+    kernel: RobustKernel, threshold: float
+) -> Callable[[float], gtsam.noiseModel.Base]:
+    """`range_noise` at `kernel` and `threshold` as a function of the sigma (m) alone, its
+    m-estimator and constructors bound once (it runs for every range factor)."""
+    sigma = gtsam.noiseModel.Isotropic.Sigma
+    if kernel is RobustKernel.NONE:
+        return lambda s: sigma(1, float(s))
+    robust = gtsam.noiseModel.Robust.Create
+    est = robust_estimator(kernel, threshold)
+    return lambda s: robust(est, sigma(1, float(s)))
 
 
 def robust_weight(kernel: RobustKernel, threshold: float, whitened: np.ndarray) -> np.ndarray:

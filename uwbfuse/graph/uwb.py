@@ -22,6 +22,7 @@ jumps) and the M-step are the model's, in `uwbfuse.nlos`.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -30,8 +31,7 @@ import numpy as np
 
 from uwbfuse.config import KERNEL_THRESHOLD_95, RobustKernel, UwbConfig
 from uwbfuse.constants import EXCESS_FLOOR, SEARCH_MAX_ANCHORS, SEARCH_SHIFT_SIGMA
-from uwbfuse.graph.keys import D, L, X
-from uwbfuse.graph.noise import range_noise
+from uwbfuse.graph.keys import D
 from uwbfuse.nlos import NlosModel
 
 
@@ -55,25 +55,12 @@ def robust_log_density(r: np.ndarray, sigma: float, uwb: UwbConfig) -> np.ndarra
     return huber_log_density(r, sigma, k)
 
 
-def range_factor(
-    k: int,
-    anchor: int,
-    measured: float,
-    sigma: float,
-    body_t_tag: gtsam.Pose3,
-    uwb: UwbConfig,
-    bias_key: int | None,
-) -> gtsam.NonlinearFactor:
-    """Range from X(k) through `body_t_tag` to anchor L(a), plus the bias variable if any."""
-    noise = range_noise(sigma, uwb.robust_kernel, uwb.kernel_threshold)
-    return range_factor_keyed(X(k), L(anchor), bias_key, float(measured), noise, body_t_tag)
-
-
 def range_factor_keyed(
     pose_key: int, anchor_key: int, bias_key: int | None, measured: float,
     noise: gtsam.noiseModel.Base, body_t_tag: gtsam.Pose3,
 ) -> gtsam.NonlinearFactor:
-    """The native range factor of `range_factor` from keys and a ready noise model."""
+    """Range from `pose_key` through `body_t_tag` to the anchor `anchor_key` (m), plus the
+    bias variable `bias_key` if any, with a ready noise model (`noise.range_noise`)."""
     if bias_key is not None:
         return gtsam.RangeFactorWithTransformBias3D(
             pose_key, anchor_key, bias_key, measured, noise, body_t_tag)
@@ -125,6 +112,18 @@ class LosHypothesis:
     shift_moment: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
+_N_SUMS = 11  # per-anchor sums of `los_subset_search`
+
+
+@functools.cache
+def _subsets(m: int) -> np.ndarray:
+    """Every subset of m anchors (2^m, m) bool, row i holding the bits of i (shared: not
+    to be written)."""
+    out = ((np.arange(2**m)[:, None] >> np.arange(m)[None, :]) & 1).astype(bool)
+    out.flags.writeable = False
+    return out
+
+
 def los_subset_search(
     anchor: np.ndarray, r: np.ndarray, u: np.ndarray, g: np.ndarray, model: NlosModel,
     sigma_shift: float = SEARCH_SHIFT_SIGMA, max_anchors: int = SEARCH_MAX_ANCHORS,
@@ -154,18 +153,15 @@ def los_subset_search(
     if m == 0 or m > max_anchors or len(r) < 3 * m:
         return None
     n = np.bincount(inv, minlength=m).astype(float)
-
-    def per_anchor(x: np.ndarray) -> np.ndarray:  # sums of the rows of x per anchor
-        flat = x.reshape(len(x), -1)
-        out = np.stack([np.bincount(inv, weights=flat[:, j], minlength=m)
-                        for j in range(flat.shape[1])], axis=1)
-        return out.reshape((m, *x.shape[1:]))
-
-    suu = per_anchor(u[:, :, None] * u[:, None, :])
-    su = per_anchor(u)
-    sur = per_anchor(u * r[:, None])
-    sr = np.bincount(inv, weights=r, minlength=m)
-    srr = np.bincount(inv, weights=r * r, minlength=m)
+    # per anchor, the sums of u u^T (4), u (2), u r (2), r, r^2 and g: one bincount over
+    # the columns side by side (each anchor's sum of a column adds its rows in order, as a
+    # bincount of that column alone does)
+    cols = np.concatenate([(u[:, :, None] * u[:, None, :]).reshape(-1, 4), u, u * r[:, None],
+                           r[:, None], (r * r)[:, None], g[:, None]], axis=1)
+    sums = np.bincount((inv[:, None] * _N_SUMS + np.arange(_N_SUMS)).ravel(),
+                       weights=cols.ravel(), minlength=m * _N_SUMS).reshape(m, _N_SUMS)
+    suu, su, sur = sums[:, :4].reshape(m, 2, 2), sums[:, 4:6], sums[:, 6:8]
+    sr, srr, sg = sums[:, 8], sums[:, 9], sums[:, 10]
     p = min(max(model.p_nlos, 0.02), 0.98)
     # LOS: 1/2 d'A d - b'd + c per anchor
     wl = 1.0 / model.sigma_los**2
@@ -181,7 +177,7 @@ def los_subset_search(
     b_n = wn * sur - (wn * su) * (gm / hmm_)[:, None]
     c_n = (0.5 * wn * srr + 0.5 * k * mu * mu - 0.5 * gm * gm / hmm_ + 0.5 * np.log(hmm_)
            + n * math.log(s_n) + math.log(model.sigma_slow) - math.log(p))
-    subsets = ((np.arange(2**m)[:, None] >> np.arange(m)[None, :]) & 1).astype(bool)  # LOS
+    subsets = _subsets(m)  # LOS
     sel = subsets[:, :, None, None]
     a_tot = np.where(sel, a_l, a_n).sum(axis=1) + np.eye(2) / sigma_shift**2
     b_tot = np.where(subsets[:, :, None], b_l, b_n).sum(axis=1)
@@ -192,7 +188,7 @@ def los_subset_search(
     # EXCESS_FLOOR, room for LOS biases that have absorbed some NLOS) is not a hypothesis
     ex_all = (gm[None, :] - wn * np.einsum("mi,si->sm", su, delta)) / hmm_[None, :]
     invalid = np.any(~subsets & (ex_all < EXCESS_FLOOR), axis=1)
-    cur_w = np.bincount(inv, weights=g, minlength=m) / n
+    cur_w = sg / n
     current = cur_w < 0.5
     i_cur = int(np.sum(current.astype(int) << np.arange(m)))
     best = int(np.argmin(np.where(invalid, np.inf, cost)))

@@ -15,7 +15,8 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from uwbfuse.graph.noise import gaussian_covariances
+from uwbfuse.config import RobustKernel
+from uwbfuse.graph.noise import gaussian_covariances, robust_estimator
 from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for the graph
     FEW_QUERIES,
     WheelTrack,
@@ -23,6 +24,8 @@ from uwbfuse.positioning.wheel_track import (  # noqa: F401 - re-exported for th
     se2_between,
     se2_compose,
 )
+
+_PLANAR_IX = (3, 4, 2)  # where `planar_covariance6` puts (x, y, theta) in the Pose3 tangent
 
 
 def se2_to_pose3(d: np.ndarray) -> gtsam.Pose3:
@@ -47,6 +50,26 @@ def planar_covariance6(
     # floor: a perfectly still vehicle still gets a tiny (1 mm, 1 mrad) uncertainty
     cov6 += np.diag([0, 0, 1e-6, 1e-6, 1e-6, 0])
     return cov6[0] if one else cov6
+
+
+def planar_gaussian6(cov_xyt: np.ndarray,
+                     out_of_plane_sigmas: tuple[float, float, float]) -> np.ndarray:
+    """`gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))` of one
+    (3,3) covariance in (x, y, theta): the (6,6) Pose3 tangent covariance of a wheel
+    factor, in Python floats (the same operations element by element; numpy's per-call
+    cost was most of a keyframe's wheel factor)."""
+    c = np.asarray(cov_xyt, dtype=np.float64).tolist()
+    sr, sp, sz = out_of_plane_sigmas
+    m = [[0.0] * 6 for _ in range(6)]
+    m[0][0], m[1][1], m[5][5] = sr**2, sp**2, sz**2
+    for i, row in zip(_PLANAR_IX, c, strict=True):
+        for j, x in zip(_PLANAR_IX, row, strict=True):
+            m[i][j] = x
+    floor = [0.0, 0.0, 1e-6, 1e-6, 1e-6, 0.0]  # `planar_covariance6`'s, then the diagonal
+    a = [[m[i][j] + (floor[i] if i == j else 0.0) for j in range(6)] for i in range(6)]
+    cov6 = np.array([[0.5 * (a[i][j] + a[j][i]) + (1e-12 if i == j else 0.0)
+                      for j in range(6)] for i in range(6)])  # of `gaussian_covariances`
+    return cov6
 
 
 def between_factors(
@@ -97,6 +120,6 @@ def between_factor(
 ) -> gtsam.BetweenFactorPose3:
     """One `between_factors` factor (a planar delta (3,) with covariance (3,3)), without
     its array passes (one per keyframe online; the same numbers)."""
-    huber = None if robust_k is None else gtsam.noiseModel.mEstimator.Huber.Create(robust_k)
-    cov6 = gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))
+    huber = None if robust_k is None else robust_estimator(RobustKernel.HUBER, robust_k)
+    cov6 = planar_gaussian6(cov_xyt, out_of_plane_sigmas)
     return _between(key_a, key_b, np.asarray(delta).reshape(3), cov6, huber)
