@@ -422,13 +422,14 @@ def hmm_smooth(
 
 def hmm_smooth_by_anchor(
     anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
-    p_nlos: float, jump_ll: np.ndarray | None, p0: np.ndarray,
+    p_nlos: float, jump_ll: np.ndarray | None = None, p0: np.ndarray | None = None,
 ) -> np.ndarray:
     """`hmm_smooth` of the ranges of several anchors (each anchor's in time order), each
-    anchor's chain from `p0` (N,) of its first range. The inputs are prepared once for all
-    ranges (the same numbers as anchor by anchor: every step is elementwise)."""
+    anchor's chain from `p0` (N,) of its first range (None: p_nlos, as `hmm_smooth`). The
+    inputs are prepared once for all ranges (the same numbers as anchor by anchor: every
+    step is elementwise)."""
     e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
-    p0_list = np.asarray(p0, np.float64).tolist()
+    p0_list = [None] * len(e0) if p0 is None else np.asarray(p0, np.float64).tolist()
     g = [0.0] * len(e0)
     for _, rows in _rows_by_anchor(anchor):
         post = _smooth_chain([e0[i] for i in rows], [e1[i] for i in rows],

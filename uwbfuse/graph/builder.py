@@ -313,7 +313,6 @@ def robust_los_sigma(r: np.ndarray, g: np.ndarray, prior: float, n0: float) -> f
 _ROT_IDENTITY = gtsam.Rot3()  # the range factors' tag offset is a pure translation
 
 
-
 class GraphBuilder:
     """Turns buffered sensor data into keyframes and factors (see the module docstring)."""
 

@@ -40,17 +40,15 @@ def range_noise(
     sigma: float, kernel: RobustKernel, threshold: float
 ) -> gtsam.noiseModel.Base:
     """1-D range noise (sigma in metres) wrapped in the robust kernel (threshold in sigmas)."""
-    base = gtsam.noiseModel.Isotropic.Sigma(1, float(sigma))
-    if kernel is RobustKernel.NONE:
-        return base
-    return gtsam.noiseModel.Robust.Create(robust_estimator(kernel, threshold), base)
+    return range_noise_maker(kernel, threshold)(sigma)
 
 
 def range_noise_maker(
     kernel: RobustKernel, threshold: float
 ) -> Callable[[float], gtsam.noiseModel.Base]:
-    """`range_noise` at `kernel` and `threshold` as a function of the sigma (m) alone, its
-    m-estimator and constructors bound once (it runs for every range factor)."""
+    """1-D range noise at `kernel` and `threshold` (in sigmas) as a function of the sigma
+    (m) alone, its m-estimator and constructors bound once (it runs for every range
+    factor)."""
     sigma = gtsam.noiseModel.Isotropic.Sigma
     if kernel is RobustKernel.NONE:
         return lambda s: sigma(1, float(s))

@@ -66,7 +66,7 @@ from uwbfuse.graph.uwb import (
     robust_log_density,
 )
 from uwbfuse.graph.wheel import between_factors
-from uwbfuse.nlos import NlosModel, hmm_smooth
+from uwbfuse.nlos import NlosModel, hmm_smooth_by_anchor
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
 
@@ -707,12 +707,8 @@ def _smooth_per_anchor(ll_los: np.ndarray, ll_nlos: np.ndarray, anchor: np.ndarr
     """E-step: each range's NLOS responsibility from its LOS and NLOS log-likelihoods, one
     two-state HMM smoothing per anchor over its ranges in time (`order` sorts the ranges
     by anchor then time, `inv` undoes it)."""
-    a_sorted = anchor[order]
-    gs = np.empty(len(order))
-    ll_ls, ll_ns = ll_los[order], ll_nlos[order]
-    for a in np.unique(a_sorted):
-        sel = np.flatnonzero(a_sorted == a)
-        gs[sel] = hmm_smooth(ll_ls[sel], ll_ns[sel], mix.p_switch, mix.p_nlos)
+    gs = hmm_smooth_by_anchor(anchor[order], ll_los[order], ll_nlos[order], mix.p_switch,
+                              mix.p_nlos)
     return gs[inv]
 
 
