@@ -343,8 +343,9 @@ class GraphConfig(_Section):
         0.05, gt=0, description="prior std of range scale factors (1 = none)"
     )
     estimate_wheel_scale: bool = Field(
-        True, description="batch: calibrate the wheel odometry's speed and yaw-rate scale "
-        "factors (wheel radius and track errors) against the smoothed track"
+        True, description="calibrate the wheel odometry's speed and yaw-rate scale "
+        "factors (wheel radius and track errors) against the smoothed track: batch over the "
+        "whole log, the online graph recursively from the keyframes leaving its lag"
     )
     estimate_wheel_noise: bool = Field(
         True, description="batch: scale the wheel noise (translation and heading sigmas) "

@@ -123,6 +123,9 @@ WHEEL_HUBER_K = 1.345
 # prior std of the speed and yaw-rate scale factors (1 = none): wheel radius and track width
 # are off by 1-3 % ordinarily
 WHEEL_SCALE_SIGMA = 0.05
+# the farthest a scale factor may be from 1: 20 % is a wrong wheel radius or encoder count in
+# the config, not wear, and beyond it the fit is chasing slip
+WHEEL_SCALE_MAX_ERROR = 0.2
 # relative scale change that rebuilds the wheel factors: 25 um on a keyframe's 5 cm (0.5 m/s,
 # 0.1 s), far under its mm of noise; smaller is not worth the rebuild (work bound)
 WHEEL_SCALE_MIN_CHANGE = 5e-4

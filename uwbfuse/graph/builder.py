@@ -51,6 +51,8 @@ from uwbfuse.constants import (
     UNOBSERVED_COMMON_BIAS_SIGMA,
     VIRTUAL_BIAS_SIGMA,
     WHEEL_HUBER_K,
+    WHEEL_SCALE_MAX_ERROR,
+    WHEEL_SCALE_SIGMA,
 )
 from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
@@ -71,6 +73,7 @@ from uwbfuse.graph.wheel import (
     planar_covariance6,
     se2_between,
     se2_to_pose3,
+    wheel_scale_evidence,
 )
 from uwbfuse.nlos import (
     NlosModel,
@@ -383,6 +386,7 @@ class GraphBuilder:
         self._init_pending()
         self._init_records(record, seeding)
         self._init_range_scale(start)
+        self._init_wheel_scale()
         self._init_online_choice()
         # what every range factor takes: its noise model maker, each anchor's L(a) and LOS
         # bias key (`range_factors`)
@@ -519,6 +523,66 @@ class GraphBuilder:
         self.pose_index: list[int] = []
         self.full_values = gtsam.Values() if record else None
 
+    def _init_wheel_scale(self) -> None:
+        """The online odometry scale factors (v, omega) its wheel factors are built with
+        (`learn_wheel_scale`; 1 until the smoothed track has shown them). Batch's seeding
+        pass keeps them at 1: batch fits its own over the whole log (`offline._WheelScale`)."""
+        self.wheel_scale = np.ones(2)
+        self.online_wheel_scale = (self.has_wheel and self.g.estimate_wheel_scale
+                                   and not self.seeding)
+        self._ws_num = np.zeros(2)
+        self._ws_den = np.zeros(2)
+        # integrated (scale 1) delta and covariance of each wheel factor X(k) -> X(k + 1)
+        # not yet learnt from, by k (bounded: `learn_wheel_scale` drops what leaves the lag)
+        self._wheel_raw: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def learn_wheel_scale(self, poses: dict[int, gtsam.Pose3], upto: int) -> None:
+        """Add the evidence of the wheel factors X(k) -> X(k + 1), k + 1 <= `upto`, against
+        the smoothed keyframe poses `poses` (map frame; as they leave the fixed lag) to the
+        online odometry scales: the recursive form of batch's refit (`wheel_scale_evidence`,
+        prior N(1, WHEEL_SCALE_SIGMA^2)); a radius or track error is a constant, so each
+        keyframe pair adds its share of all the evidence. Factors whose poses are gone
+        (re-anchored) are dropped."""
+        if not self.online_wheel_scale:
+            return
+        ks = [k for k in self._wheel_raw if k + 1 <= upto]
+        use = ([k for k in ks if k in poses and k + 1 in poses]
+               if self.wheel_scale_applies() else [])
+        if use:
+            rot = np.array([[poses[k].rotation().matrix() for k in use],
+                            [poses[k + 1].rotation().matrix() for k in use]])
+            trans = np.array([[poses[k].translation() for k in use],
+                              [poses[k + 1].translation() for k in use]])
+            delta = np.array([self._wheel_raw[k][0] for k in use])
+            cov = np.array([self._wheel_raw[k][1] for k in use])
+            num, den = wheel_scale_evidence(rot[0], trans[0], rot[1], trans[1], delta, cov,
+                                            self.wheel_scale, WHEEL_HUBER_K)
+            self._ws_num += num
+            self._ws_den += den
+            prior = WHEEL_SCALE_SIGMA**-2
+            self.wheel_scale = np.clip((self._ws_num + prior) / (self._ws_den + prior),
+                                       1.0 - WHEEL_SCALE_MAX_ERROR,
+                                       1.0 + WHEEL_SCALE_MAX_ERROR)
+        for k in ks:
+            del self._wheel_raw[k]
+
+    def odometry(self, rel: np.ndarray) -> np.ndarray:
+        """Wheel-track motions rel (N,3) (x m, y m, theta rad, base frame) at the online
+        odometry scales where they apply (`wheel_scale_applies`), else as integrated."""
+        if not (self.online_wheel_scale and self.wheel_scale_applies()):
+            return rel
+        sv, sw = float(self.wheel_scale[0]), float(self.wheel_scale[1])
+        return rel * np.array([sv, sv, sw])
+
+    def wheel_scale_applies(self) -> bool:
+        """Batch's rule online: the odometry scale is learnt and used only under the NLOS
+        mixture, where ranges float on excess states and the track follows the odometry;
+        under a robust range model (configured, or the online prequential verdict) every
+        range holds the track, and a scale fitted to that track only moves what the ranges
+        placed (docs/results.md, "Batch against the plain estimator: the wheel-scale
+        refit under a robust range model")."""
+        return self.nlos and not self.robust_online and self.prequential_verdict() != "robust"
+
     def _init_range_scale(self, start: Any) -> None:
         """The per-anchor range scale errors and whether they are estimated (`auto`: from
         the start solve's common scale)."""
@@ -646,7 +710,7 @@ class GraphBuilder:
             else:
                 dd = self.wheel.at(np.concatenate([[t_a], t_b]).astype(np.int64))
                 rel = se2_between(dd[0][None, :], dd[1:])
-            return [se2_to_pose3(r) for r in rel]
+            return [se2_to_pose3(r) for r in self.odometry(np.asarray(rel))]
         if self.cv_motion:  # constant velocity (map frame) carried into the base frame
             step = pose_a.rotation().unrotate(np.asarray(vel_a, np.float64))
             dts = (np.asarray(t_b, np.int64) - t_a).astype(np.float64) / NS_PER_S
@@ -676,7 +740,9 @@ class GraphBuilder:
     ) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b in the base frame at t_a (metres)."""
         if self.has_wheel and len(self.wheel):  # vectorised planar case
-            return self._wheel_tag(np.array([t_a], np.int64), t_b)
+            rel = se2_between(self.wheel.at(np.array([t_a], np.int64)),
+                              self.wheel.at(np.asarray(t_b, np.int64)))
+            return self._tag_from(self.odometry(rel))
         return np.array([d.transformFrom(self.tag) for d in self.delta(t_a, t_b, pose_a, vel_a)]
                         ).reshape(-1, 3)
 
@@ -914,7 +980,8 @@ class GraphBuilder:
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
         if rel is not None:
-            d = rel[0]
+            d = np.asarray(rel[0])  # as integrated: the scale's evidence and batch's records
+            rel = self.odometry(np.asarray(rel))  # at the online odometry scales
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
@@ -923,6 +990,12 @@ class GraphBuilder:
                 wr.delta.append(d)
                 wr.cov.append(cov)
                 wr.index.append(self.full_graph.size() + inc.graph.size())
+            if self.online_wheel_scale:
+                self._wheel_raw[ka] = (d, cov)
+                if self.wheel_scale_applies():
+                    c = np.array([self.wheel_scale[0], self.wheel_scale[0],
+                                  self.wheel_scale[1]])
+                    d, cov = rel[0], cov * np.outer(c, c)
             motion.append(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
             inc.graph.add(motion[-1])
             wp = pose_a.compose(se2_to_pose3(d))

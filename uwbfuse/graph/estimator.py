@@ -619,6 +619,7 @@ class GraphEstimator(EstimatorBase):
         for k in range(self._saved_upto, upto + 1):
             self._save_kf(sm, b, k)
         self._saved_upto = max(self._saved_upto, upto + 1)
+        b.learn_wheel_scale(self._kf_pose, upto)
 
     def _save_kf(self, sm: OnlineSmoother, b: GraphBuilder, k: int) -> None:
         try:
@@ -1159,6 +1160,11 @@ class GraphEstimator(EstimatorBase):
             out["online_motion_prior"] = {
                 "accel_density": b.motion_accel_density(self._online_imu_inflation),
                 "fits": self._imu_fits}
+        if b.online_wheel_scale:  # the odometry scales learnt, and whether the newest
+            # wheel factors take them (`GraphBuilder.wheel_scale_applies`)
+            out["online_wheel_scale"] = {"v": float(b.wheel_scale[0]),
+                                         "omega": float(b.wheel_scale[1]),
+                                         "applied": b.wheel_scale_applies()}
         out["dropped_ranges_before_init"] = b.dropped_ranges
         out["repeated_ranges_dropped"] = b.repeated_ranges
         return out

@@ -51,6 +51,7 @@ from uwbfuse.constants import (
     SIGMA_LOS_MIN,
     SIGMA_STEP,
     WHEEL_HUBER_K,
+    WHEEL_SCALE_MAX_ERROR,
     WHEEL_SCALE_MIN_CHANGE,
     WHEEL_SCALE_SIGMA,
 )
@@ -65,7 +66,7 @@ from uwbfuse.graph.uwb import (
     range_factor_keyed,
     robust_log_density,
 )
-from uwbfuse.graph.wheel import between_factors
+from uwbfuse.graph.wheel import between_factors, wheel_scale_evidence
 from uwbfuse.nlos import NlosModel, hmm_smooth_by_anchor
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
@@ -154,23 +155,11 @@ class _WheelScale:
             return
         rot, trans = keyframe_arrays(values, n_kf)
         k = self.k
-        ra = rot[k]
-        t_rel = np.einsum("nji,nj->ni", ra, trans[k + 1] - trans[k])[:, :2]
-        r_rel = np.einsum("nji,njk->nik", ra, rot[k + 1])
-        th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
-        d = self.delta
-        var_t = 0.5 * (self.cov[:, 0, 0] + self.cov[:, 1, 1]) + 1e-6
-        var_th = self.cov[:, 2, 2] + 1e-6
+        num, den = wheel_scale_evidence(rot[k], trans[k], rot[k + 1], trans[k + 1],
+                                        self.delta, self.cov, self.scale, WHEEL_HUBER_K)
         prior = WHEEL_SCALE_SIGMA**-2
-        out = self.scale.copy()
-        for j, (est, raw, var) in enumerate((
-                (t_rel, d[:, :2], var_t), (th_e[:, None], d[:, 2:3], var_th))):
-            res = np.linalg.norm(est - out[j] * raw, axis=1) / np.sqrt(var)
-            w = np.minimum(1.0, WHEEL_HUBER_K / np.maximum(res, 1e-12)) / var
-            num = float(np.sum(w * np.sum(est * raw, axis=1))) + prior
-            den = float(np.sum(w * np.sum(raw * raw, axis=1))) + prior
-            out[j] = num / den
-        self.scale = np.clip(out, 0.8, 1.2)
+        out = (num + prior) / (den + prior)
+        self.scale = np.clip(out, 1.0 - WHEEL_SCALE_MAX_ERROR, 1.0 + WHEEL_SCALE_MAX_ERROR)
 
     def apply(self, graphs: list[gtsam.NonlinearFactorGraph]) -> bool:
         """Rebuild the wheel factors of `graphs` (same indices) at the current scales when

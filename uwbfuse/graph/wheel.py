@@ -123,3 +123,29 @@ def between_factor(
     huber = None if robust_k is None else robust_estimator(RobustKernel.HUBER, robust_k)
     cov6 = planar_gaussian6(cov_xyt, out_of_plane_sigmas)
     return _between(key_a, key_b, np.asarray(delta).reshape(3), cov6, huber)
+
+
+def wheel_scale_evidence(
+    rot_a: np.ndarray, trans_a: np.ndarray, rot_b: np.ndarray, trans_b: np.ndarray,
+    delta: np.ndarray, cov: np.ndarray, scale: np.ndarray, huber_k: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares evidence of the odometry's (v, omega) scale factors from wheel deltas
+    against the same motion of an estimated track: keyframe pairs (a, b) with map-frame
+    rotations (n,3,3) and translations (n,3) m, the integrated (scale 1) planar deltas
+    (n,3) (x m, y m, theta rad, base frame at a) and their (n,3,3) covariances. Returns
+    (numerator (2,), denominator (2,)): the weighted scale is num / den, each row weighed by
+    its inverse variance and a Huber weight (threshold `huber_k` sigmas) of its residual at
+    `scale` (against wheel slip). Batch's refit and the online estimate share it."""
+    t_rel = np.einsum("nji,nj->ni", rot_a, trans_b - trans_a)[:, :2]
+    r_rel = np.einsum("nji,njk->nik", rot_a, rot_b)
+    th_e = np.arctan2(r_rel[:, 1, 0], r_rel[:, 0, 0])
+    var_t = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) + 1e-6
+    var_th = cov[:, 2, 2] + 1e-6
+    num, den = np.zeros(2), np.zeros(2)
+    for j, (est, raw, var) in enumerate((
+            (t_rel, delta[:, :2], var_t), (th_e[:, None], delta[:, 2:3], var_th))):
+        res = np.linalg.norm(est - scale[j] * raw, axis=1) / np.sqrt(var)
+        w = np.minimum(1.0, huber_k / np.maximum(res, 1e-12)) / var
+        num[j] = float(np.sum(w * np.sum(est * raw, axis=1)))
+        den[j] = float(np.sum(w * np.sum(raw * raw, axis=1)))
+    return num, den
