@@ -566,13 +566,19 @@ class GraphBuilder:
         for k in ks:
             del self._wheel_raw[k]
 
+    def _odometry_scale(self) -> np.ndarray | None:
+        """The (x, y, theta) factors of the online odometry scales where they apply
+        (`wheel_scale_applies`), else None (the track as integrated)."""
+        if not (self.online_wheel_scale and self.wheel_scale_applies()):
+            return None
+        sv, sw = float(self.wheel_scale[0]), float(self.wheel_scale[1])
+        return np.array([sv, sv, sw])
+
     def odometry(self, rel: np.ndarray) -> np.ndarray:
         """Wheel-track motions rel (N,3) (x m, y m, theta rad, base frame) at the online
-        odometry scales where they apply (`wheel_scale_applies`), else as integrated."""
-        if not (self.online_wheel_scale and self.wheel_scale_applies()):
-            return rel
-        sv, sw = float(self.wheel_scale[0]), float(self.wheel_scale[1])
-        return rel * np.array([sv, sv, sw])
+        odometry scales where they apply, else as integrated."""
+        c = self._odometry_scale()
+        return rel if c is None else rel * c
 
     def wheel_scale_applies(self) -> bool:
         """Batch's rule online: the odometry scale is learnt and used only under the NLOS
@@ -981,7 +987,9 @@ class GraphBuilder:
             inc.stamps[B(k)] = self.stamp(k)
         if rel is not None:
             d = np.asarray(rel[0])  # as integrated: the scale's evidence and batch's records
-            rel = self.odometry(np.asarray(rel))  # at the online odometry scales
+            c = self._odometry_scale()
+            if c is not None:  # the keyframe's motion and its ranges' tags at the scales
+                rel = np.asarray(rel) * c
             cov = self.wheel.covariance(t_a, t_b, self.cfg.wheel)
             oop = self.wheel_records.out_of_plane
             if self.record and self.full_graph is not None:  # pushed by `_record` below
@@ -992,10 +1000,8 @@ class GraphBuilder:
                 wr.index.append(self.full_graph.size() + inc.graph.size())
             if self.online_wheel_scale:
                 self._wheel_raw[ka] = (d, cov)
-                if self.wheel_scale_applies():
-                    c = np.array([self.wheel_scale[0], self.wheel_scale[0],
-                                  self.wheel_scale[1]])
-                    d, cov = rel[0], cov * np.outer(c, c)
+            if c is not None:
+                d, cov = rel[0], cov * np.outer(c, c)
             motion.append(between_factor(X(ka), X(k), d, cov, oop, WHEEL_HUBER_K))
             inc.graph.add(motion[-1])
             wp = pose_a.compose(se2_to_pose3(d))
