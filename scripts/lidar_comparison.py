@@ -34,6 +34,24 @@ def ate(log: SensorLog, method: Method) -> tuple[float, object]:
     return evaluate(res.trajectory, log.ground_truth).ate_2d.rmse, res.trajectory
 
 
+def compare(seeds: int, duration: float, methods: list[Method], verbose: bool = False,
+            **overrides: float) -> dict[tuple[Method, bool], list[float]]:
+    """2-D ATE RMSE (m) per (method, with UWB) over seeds 1..`seeds` of `warehouse-lidar`
+    (`duration` s, scenario `overrides`): each log as simulated and with its ranges removed."""
+    rows: dict[tuple[Method, bool], list[float]] = {}
+    for seed in range(1, seeds + 1):
+        log = simulate("warehouse-lidar", duration, seed, **overrides)
+        no_uwb = dataclasses.replace(log, ranges=None)
+        for m in methods:
+            for with_uwb, lg in ((False, no_uwb), (True, log)):
+                e, _ = ate(lg, m)
+                rows.setdefault((m, with_uwb), []).append(e)
+                if verbose:
+                    print(f"seed {seed} {m.value:6s} {'+uwb' if with_uwb else 'lidar'}: "
+                          f"{e:.4f} m", flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, default=3)
@@ -44,16 +62,7 @@ def main() -> None:
     a = ap.parse_args()
     kw = {} if a.pose_corr is None else {"pose_corr": a.pose_corr}
     methods = [Method(m) for m in a.methods.split(",")]
-    rows: dict[tuple[Method, bool], list[float]] = {}
-    for seed in range(1, a.seeds + 1):
-        log = simulate("warehouse-lidar", a.duration, seed, **kw)
-        no_uwb = dataclasses.replace(log, ranges=None)
-        for m in methods:
-            for with_uwb, lg in ((False, no_uwb), (True, log)):
-                e, _ = ate(lg, m)
-                rows.setdefault((m, with_uwb), []).append(e)
-                print(f"seed {seed} {m.value:6s} {'+uwb' if with_uwb else 'lidar'}: {e:.4f} m",
-                      flush=True)
+    rows = compare(a.seeds, a.duration, methods, verbose=True, **kw)
     print()
     print("| method | IMU+odo+LiDAR ATE m (mean / worst) | +UWB ATE m (mean / worst) | "
           "change |")

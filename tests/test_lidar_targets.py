@@ -1,0 +1,45 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""The UKF paper's comparison as issue 16 scores it (`scripts/lidar_comparison.py`, its
+defaults: `warehouse-lidar`, seeds 1-3, 90 s): ranges must help every method, and the graph
+must be at least 30 % below the UKF with them. Slow: 24 runs."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uwbfuse.estimator import Method
+
+ROOT = Path(__file__).resolve().parents[1]
+METHODS = [Method.UKF, Method.EKF, Method.ISAM2, Method.BATCH]
+
+
+def _comparison() -> dict[tuple[Method, bool], list[float]]:
+    spec = importlib.util.spec_from_file_location("lidar_comparison",
+                                                  ROOT / "scripts" / "lidar_comparison.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.compare(3, 90.0, METHODS)
+
+
+@pytest.mark.slow
+def test_lidar_comparison_targets() -> None:
+    """test that on the LiDAR scenario the ranges lower every method's mean ATE, and that
+    batch is at least 30 % below the ukf with them; isam2's own 30 % is an expected failure
+    (see the message)"""
+    rows = _comparison()
+    mean = {key: float(np.mean(v)) for key, v in rows.items()}
+    for m in METHODS:
+        assert mean[(m, True)] < mean[(m, False)], (m, mean[(m, True)], mean[(m, False)])
+    ukf = mean[(Method.UKF, True)]
+    assert mean[(Method.BATCH, True)] <= 0.7 * ukf, (mean[(Method.BATCH, True)], ukf)
+    isam2 = mean[(Method.ISAM2, True)]
+    if isam2 > 0.7 * ukf:
+        # met up to 9d835b7 (session 22: online ranges classified against the negative part
+        # of their anchor's offset), which took isam2 from 0.053 to 0.086 m here; that rule
+        # is worth more on the other scenarios (docs/results.md, session 33)
+        pytest.xfail(f"isam2 {isam2:.4f} m against ukf {ukf:.4f} m: not 30 % below")
