@@ -737,8 +737,9 @@ def test_online_imu_noise_takes_the_loosest_factor_the_evidence_allows(
 def test_online_ranges_are_classified_against_the_offset_nlos_cannot_make():
     """Test that the online graph judges a range LOS/NLOS against the negative part of its
     anchor's estimated offset only (NLOS only lengthens a range; a positive offset may be
-    shared NLOS excess taken up), while batch's seeding pass, and a graph that cannot tell
-    the offset from the height, use the whole estimate."""
+    shared NLOS excess taken up), while batch's seeding pass, a graph that cannot tell
+    the offset from the height, and a graph with a localiser's poses (which place the tag
+    apart from the ranges) use the whole estimate."""
     from uwbfuse.graph.builder import GraphBuilder
     from uwbfuse.graph.imu import ImuBuffer
     from uwbfuse.graph.wheel import WheelTrack
@@ -756,7 +757,8 @@ def test_online_ranges_are_classified_against_the_offset_nlos_cannot_make():
     # offset trades with the height), keep the whole estimate
     for seeding, streams, expected in (
             (False, {"wheel", "uwb"}, [0.0, -0.08, 0.0, 0.0]), (True, {"wheel", "uwb"}, whole),
-            (False, {"imu", "uwb"}, whole)):
+            (False, {"imu", "uwb"}, whole), (False, {"wheel", "uwb", "pose"}, whole),
+            (False, {"imu", "wheel", "uwb", "pose"}, whole)):
         b = GraphBuilder(Config(), anchors, frozenset(streams), start, ImuBuffer(),
                          WheelTrack(), record=seeding, seeding=seeding)
         b.range_bias[:] = [0.15, -0.08, 0.0]

@@ -339,6 +339,7 @@ class GraphBuilder:
         self.g = config.graph
         self.anchors = anchors
         self.has_wheel = "wheel" in streams
+        self.has_pose = "pose" in streams  # a localiser's absolute poses (`[topics] pose`)
         # neither IMU nor wheels: a constant-velocity prior carried by a virtual IMU (the
         # IMU factor path with V and B keys; `imu.motion_prior_params`)
         self.cv_motion = "imu" not in streams and not self.has_wheel
@@ -1155,12 +1156,17 @@ class GraphBuilder:
         the range factors keep the estimated offset. Batch's seeding pass keeps it whole,
         and so does a graph whose height is free with coplanar anchors: there the common
         offset is held at zero (it trades with the height), and what each anchor's offset
-        differs from it by may take either sign.
+        differs from it by may take either sign. So does a graph with a localiser's poses:
+        they place the tag apart from the ranges, each offset is measured against them, and
+        a positive one so learnt must hold through the localiser's dropouts, where judging
+        the ranges against none of it calls the anchor's LOS ranges NLOS (docs/results.md,
+        "The LiDAR scenario's online classes", session 33).
         """
         if not self.with_bias:
             return np.zeros(len(a))
         d = self.range_bias[a]
-        return d if self.seeding or not self.offset_observable else np.minimum(d, 0.0)
+        whole = self.seeding or not self.offset_observable or self.has_pose
+        return d if whole else np.minimum(d, 0.0)
 
     def _jump_evidence(
         self, t: np.ndarray, a: np.ndarray, r: np.ndarray, excess: np.ndarray
