@@ -747,17 +747,16 @@ class GraphBuilder:
     ) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b in the base frame at t_a (metres)."""
         if self.has_wheel and len(self.wheel):  # vectorised planar case
-            rel = se2_between(self.wheel.at(np.array([t_a], np.int64)),
-                              self.wheel.at(np.asarray(t_b, np.int64)))
-            return self._tag_from(self.odometry(rel))
+            return self._wheel_tag(np.array([t_a], np.int64), t_b, scaled=True)
         return np.array([d.transformFrom(self.tag) for d in self.delta(t_a, t_b, pose_a, vel_a)]
                         ).reshape(-1, 3)
 
-    def _wheel_tag(self, t_a: np.ndarray, t_b: np.ndarray) -> np.ndarray:
+    def _wheel_tag(self, t_a: np.ndarray, t_b: np.ndarray, scaled: bool = False) -> np.ndarray:
         """Tag antenna position (N,3) at each time t_b (N,) in the base frame at t_a ((N,) or
-        (1,) for all) by the wheel track (metres)."""
-        return self._tag_from(se2_between(self.wheel.at(t_a),
-                                          self.wheel.at(np.asarray(t_b, np.int64))))
+        (1,) for all) by the wheel track (metres): as integrated, or (`scaled`) at the online
+        odometry scales where they apply (`odometry`)."""
+        rel = se2_between(self.wheel.at(t_a), self.wheel.at(np.asarray(t_b, np.int64)))
+        return self._tag_from(self.odometry(rel) if scaled else rel)
 
     def _tag_from(self, rel: np.ndarray) -> np.ndarray:
         """Tag antenna positions (N,3) in the base frame at t_a from the wheel track's
