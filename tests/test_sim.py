@@ -11,7 +11,8 @@ import pytest
 
 from uwbfuse.errors import SimulationError
 from uwbfuse.sim import SCENARIOS, simulate, simulate_with_truth
-from uwbfuse.sim.nlos import Box, segments_blocked
+from uwbfuse.sim.fleet import FLEETS
+from uwbfuse.sim.nlos import Box, nlos_excess, segments_blocked, unit_ar1
 from uwbfuse.sim.scenarios import QIU_STATIC_POINTS
 from uwbfuse.sim.trajectory import Straight, Turn, route_polyline
 from uwbfuse.streams import NS_PER_S
@@ -180,7 +181,7 @@ def test_los_range_statistics() -> None:
 
 
 def test_warehouse_nlos_statistics() -> None:
-    """test that about two thirds of warehouse-nlos ranges are NLOS with excess N(0.3, 0.15)"""
+    """test that about two thirds of warehouse-nlos ranges are NLOS, excess mean 0.3, std 0.15"""
     r = simulate_with_truth("warehouse-nlos", duration_s=900.0, seed=1)
     assert 0.6 < r.nlos_fraction < 0.8
     ex = r.nlos_excess[r.nlos]
@@ -194,6 +195,42 @@ def test_warehouse_nlos_statistics() -> None:
     runs = [np.diff(np.flatnonzero(np.diff(np.r_[0, r.nlos[a == j], 0]))) for j in range(4)]
     longest = max(int(x[::2].max()) for x in runs if len(x))
     assert longest / 10.0 > 10.0  # ~10 Hz per anchor: longer than 10 s
+
+
+def test_lognormal_nlos_excess_is_never_negative_with_the_configured_moments() -> None:
+    """test that the log-normal NLOS excess is positive with the configured mean and std, its
+    slow share correlated over the correlation time and its white part not; the Gaussian
+    law (the default) has the same moments and reads short where the log-normal cannot"""
+    rng = np.random.default_rng(3)
+    n, dt, tau = 200_000, 0.1, 5.0
+    x_slow, x_white = unit_ar1(rng, n, dt, tau), rng.standard_normal(n)
+    ex = nlos_excess(x_slow, x_white, 0.114, 0.145, 0.7, "lognormal")
+    assert np.all(ex > 0.0)
+    assert ex.mean() == pytest.approx(0.114, rel=0.05)
+    assert ex.std() == pytest.approx(0.145, rel=0.1)
+    lag = round(1.0 / dt)  # 1 s apart: the slow part (70 % of the log variance) persists
+    lx = np.log(ex)
+    assert np.corrcoef(lx[:-lag], lx[lag:])[0, 1] == pytest.approx(
+        0.7 * np.exp(-1.0 / tau), abs=0.03)
+    white = nlos_excess(x_slow, x_white, 0.114, 0.145, 0.0, "lognormal")
+    assert abs(np.corrcoef(white[:-1], white[1:])[0, 1]) < 0.02
+    gauss = nlos_excess(x_slow, x_white, 0.114, 0.145, 0.7)
+    assert gauss.mean() == pytest.approx(0.114, rel=0.05)
+    assert gauss.std() == pytest.approx(0.145, rel=0.1)
+    assert 0.15 < np.mean(gauss < 0.0) < 0.30
+    with pytest.raises(ValueError, match="lognormal"):
+        nlos_excess(x_slow, x_white, 0.114, 0.145, 0.7, "gamma")
+    # in a simulated log every NLOS range reads long under the log-normal law; the other
+    # streams and the LOS ranges are the Gaussian law's draw for draw
+    g = simulate_with_truth("warehouse", duration_s=60.0, seed=2)
+    ln = simulate_with_truth("warehouse", duration_s=60.0, seed=2, nlos_excess="lognormal")
+    assert np.all(ln.nlos_excess[ln.nlos] > 0.0) and np.any(g.nlos_excess[g.nlos] < 0.0)
+    np.testing.assert_array_equal(ln.nlos, g.nlos)
+    los = ~g.nlos
+    np.testing.assert_array_equal(ln.log.ranges.range[los], g.log.ranges.range[los])
+    np.testing.assert_array_equal(ln.log.imu.accel, g.log.imu.accel)
+    with pytest.raises(SimulationError, match="nlos_excess"):
+        simulate("warehouse", duration_s=10.0, seed=0, nlos_excess="gamma")
 
 
 def _blocked_bruteforce(p: np.ndarray, q: np.ndarray, boxes: tuple[Box, ...]) -> np.ndarray:
@@ -328,6 +365,28 @@ def test_cli_simulate_writes_contract_log(name: str, tmp_path: Path) -> None:
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
     assert {"/imu", "/wheel_odom", "/uwb/range", "/ground_truth"} <= topics
     assert set(meta["uwb_anchors"]) == {i for i, _ in SCENARIOS[name].anchors}
+
+
+def test_cli_simulate_nlos_excess_law(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                      ) -> None:
+    """test that `uwbfuse simulate --nlos-excess lognormal` writes the log-normal log, and
+    that a fleet scenario refuses the option in one line (exit 2)"""
+    pytest.importorskip("uwbfuse.io.writer")
+    from uwbfuse.cli import main
+    from uwbfuse.config import Config
+    from uwbfuse.io.reader import read_log
+
+    out = tmp_path / "ln.mcap"
+    assert main(["simulate", str(out), "--duration", "20", "--seed", "4",
+                 "--nlos-excess", "lognormal"]) == 0
+    want = simulate_with_truth("warehouse", duration_s=20.0, seed=4, nlos_excess="lognormal")
+    np.testing.assert_allclose(read_log(out, Config()).ranges.range, want.log.ranges.range,
+                               atol=1e-5)  # float32
+    fleet = next(iter(FLEETS))
+    assert main(["simulate", str(tmp_path / "f.mcap"), "--scenario", fleet,
+                 "--nlos-excess", "lognormal"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "single-vehicle" in err[0]
 
 
 def test_bundled_sample_matches_simulator() -> None:

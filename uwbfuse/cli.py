@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from uwbfuse.constants import LABEL_THRESHOLD_M
-from uwbfuse.errors import UwbfuseError
+from uwbfuse.errors import SimulationError, UwbfuseError
 
 if TYPE_CHECKING:
     from uwbfuse.progress import ProgressBar
@@ -67,9 +67,13 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from uwbfuse.sim.simulator import simulate
 
     if get_fleet(args.scenario) is not None:
+        if args.nlos_excess != "gaussian":
+            raise SimulationError("--nlos-excess applies to single-vehicle scenarios only")
         return _simulate_fleet(args)
 
-    extra = {"signal_quality": True} if args.signal_quality else {}
+    extra: dict[str, object] = {"nlos_excess": args.nlos_excess}
+    if args.signal_quality:
+        extra["signal_quality"] = True
     sim = simulate(args.scenario, duration_s=args.duration, seed=args.seed, **extra)
     write_contract_log(args.out, sim)
     span = sim.time_span_ns()
@@ -276,6 +280,10 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--signal-quality", action="store_true",
                    help="ranges with RX and first-path power (dBm) on a custom range type "
                    "(uwbfuse_msgs/msg/UwbRange), named in the log's uwb_fields metadata")
+    s.add_argument("--nlos-excess", choices=("gaussian", "lognormal"), default="gaussian",
+                   help="law of the NLOS excess range: gaussian (Qiu 2022's fitted "
+                   "N(mean, std), reads short about one NLOS range in five) or lognormal "
+                   "(the same mean and std, never negative); single-vehicle scenarios")
     s.set_defaults(func=_cmd_simulate)
 
 

@@ -65,16 +65,38 @@ def segments_blocked(p: F64, q: F64, boxes: tuple[Box, ...] | list[Box]) -> NDAr
     return np.any(leave - enter > 1e-9, axis=1)
 
 
-def nlos_bias_process(
-    rng: np.random.Generator, n: int, dt: float, mean: float, std: float, tau_s: float
-) -> F64:
-    """Slowly varying NLOS excess delay (n,) metres: a stationary AR(1) (Gauss-Markov)
-    process sampled every `dt` seconds with the given mean, std (m) and correlation time
-    `tau_s` (s). Each anchor gets its own; it applies only while the anchor is blocked."""
+def unit_ar1(rng: np.random.Generator, n: int, dt: float, tau_s: float) -> F64:
+    """A stationary AR(1) (Gauss-Markov) sequence (n,) of zero mean and unit variance, sampled
+    every `dt` seconds, correlation time `tau_s` seconds (white where tau_s <= 0)."""
     if n == 0:
         return np.zeros(0)
     phi = float(np.exp(-dt / tau_s)) if tau_s > 0 else 0.0
     e = rng.standard_normal(n)
     e[0] /= np.sqrt(max(1.0 - phi * phi, 1e-12))  # start in the stationary distribution
-    x = lfilter([np.sqrt(1.0 - phi * phi)], [1.0, -phi], e)
-    return mean + std * x
+    return lfilter([np.sqrt(1.0 - phi * phi)], [1.0, -phi], e)
+
+
+NLOS_EXCESS_LAWS = ("gaussian", "lognormal")
+
+
+def nlos_excess(x_slow: F64, x_white: F64, mean: float, std: float, slow_share: float,
+                law: str = "gaussian") -> F64:
+    """NLOS excess delay (m) of ranges from unit Gaussian drivers: `x_slow` per anchor
+    (`unit_ar1`: the slowly varying part, `slow_share` of the variance) and `x_white` per
+    range (the rest). Mean `mean` and std `std` (m) under either law:
+
+    - "gaussian": mean + std (sqrt(c) x_slow + sqrt(1 - c) x_white), Qiu 2022's fitted
+      N(0.114, 0.145) of an NLOS range's error. It reads short (negative) for about one
+      range in five, for seconds at a time, which a blocked direct path cannot do.
+    - "lognormal": exp of that Gaussian combination, scaled to the same mean and std: never
+      negative (NLOS only lengthens a range), with many small excesses that look like LOS
+      noise and a long tail; `slow_share` splits the variance of its logarithm.
+    """
+    c = min(max(slow_share, 0.0), 1.0)
+    z = np.sqrt(c) * x_slow + np.sqrt(1.0 - c) * x_white
+    if law == "gaussian":
+        return mean + std * z
+    if law != "lognormal":
+        raise ValueError(f"unknown NLOS excess law {law!r}: one of {NLOS_EXCESS_LAWS}")
+    s2 = float(np.log1p((std / mean) ** 2))  # variance of log(excess)
+    return np.exp(np.log(mean) - 0.5 * s2 + np.sqrt(s2) * z)

@@ -103,6 +103,8 @@ class Scenario:
     nlos_std: float = 0.145  # NLOS excess range std, m (total)
     nlos_corr: float = 0.7  # share of the NLOS variance that is slow (per anchor AR(1))
     nlos_tau_s: float = 5.0  # correlation time of the slow NLOS part, s
+    # "gaussian" (Qiu 2022's fit; reads short ~1 range in 5) or "lognormal" (never negative)
+    nlos_excess: str = "gaussian"
     outlier_prob: float = 0.005  # gross outliers per range
     outlier_range: tuple[float, float] = (1.0, 4.0)  # outlier magnitude, uniform, m
     outlier_negative: float = 0.15  # share of outliers that are too short

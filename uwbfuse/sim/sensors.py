@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from uwbfuse.sim.nlos import nlos_bias_process, segments_blocked
+from uwbfuse.sim.nlos import nlos_excess, segments_blocked, unit_ar1
 from uwbfuse.sim.scenarios import Scenario
 from uwbfuse.sim.trajectory import Kinematics, Timeline, evaluate
 
@@ -184,9 +184,10 @@ def uwb_ranges(
     """Two-way ranges, round robin: slot k at (k + 0.5) / uwb_rate s ranges to anchor k mod M.
 
     Error model (m): LOS noise N(0, los_sigma^2) on every range; while the 2-D segment tag ->
-    anchor crosses an obstacle (NLOS), an excess delay = slow per-anchor AR(1) part (mean
-    nlos_mean, std sqrt(nlos_corr) nlos_std, correlation time nlos_tau_s) + white part (std
-    sqrt(1 - nlos_corr) nlos_std); gross outliers (prob. outlier_prob, +-U(outlier_range),
+    anchor crosses an obstacle (NLOS), an excess delay of mean nlos_mean and std nlos_std
+    under the law `nlos_excess` (`nlos.nlos_excess`): a slow per-anchor AR(1) part (share
+    nlos_corr of the variance, correlation time nlos_tau_s) plus a white part; gross
+    outliers (prob. outlier_prob, +-U(outlier_range),
     negative with prob. outlier_negative); constant per-anchor offsets U(+-anchor_offset_max);
     dropouts (dropout_prob, nlos_dropout_prob while NLOS) and an optional outage window.
     """
@@ -204,15 +205,14 @@ def uwb_ranges(
     nlos = segments_blocked(tag[:, :2], a[:, :2], sc.boxes)
 
     offsets = rng.uniform(-sc.anchor_offset_max, sc.anchor_offset_max, size=m)
-    slow = np.empty(n)
+    x_slow = np.empty(n)
     dt_anchor = m / sc.uwb_rate
-    slow_std = np.sqrt(sc.nlos_corr) * sc.nlos_std
     for j in range(m):  # one AR(1) per anchor (M is small)
         sel = idx == j
-        slow[sel] = nlos_bias_process(rng, int(sel.sum()), dt_anchor, sc.nlos_mean, slow_std,
-                                      sc.nlos_tau_s)
-    white = rng.normal(0.0, np.sqrt(max(1.0 - sc.nlos_corr, 0.0)) * sc.nlos_std, size=n)
-    excess = np.where(nlos, slow + white, 0.0)
+        x_slow[sel] = unit_ar1(rng, int(sel.sum()), dt_anchor, sc.nlos_tau_s)
+    x_white = rng.standard_normal(n)
+    excess = np.where(nlos, nlos_excess(x_slow, x_white, sc.nlos_mean, sc.nlos_std,
+                                        sc.nlos_corr, sc.nlos_excess), 0.0)
     noise = rng.normal(0.0, sc.los_sigma, size=n)
     outlier = rng.random(n) < sc.outlier_prob
     mag = rng.uniform(*sc.outlier_range, size=n)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from uwbfuse.config import MapConfig
 from uwbfuse.errors import SimulationError
 from uwbfuse.sim.lidar import LidarPoses, lidar_poses
+from uwbfuse.sim.nlos import NLOS_EXCESS_LAWS
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
 from uwbfuse.sim.sensors import (
     ImuSamples,
@@ -119,6 +120,9 @@ def _validate(sc: Scenario, duration_s: float) -> None:
     if bad or not sc.streams:
         raise SimulationError(
             f"streams must be a non-empty subset of imu, wheel, uwb, pose: {bad}")
+    if sc.nlos_excess not in NLOS_EXCESS_LAWS:
+        raise SimulationError(
+            f"nlos_excess must be one of {', '.join(NLOS_EXCESS_LAWS)}, got {sc.nlos_excess!r}")
     if "pose" in sc.streams and not sc.pose_rate > 0:
         raise SimulationError(f"pose_rate must be positive, got {sc.pose_rate}")
 
