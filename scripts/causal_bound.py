@@ -2,7 +2,7 @@
 """How close is the causal `isam2` to the best any causal estimator with our model can do?
 
     python scripts/causal_bound.py [--scenario warehouse-nlos] [--seeds 0,1,2,3]
-                                   [--duration 120] [--step 5]
+                                   [--duration 120] [--step 5] [--nlos-excess lognormal]
     python scripts/causal_bound.py --real [labyrinth,isas-walk1,Plaza1,Plaza2] [--cuts 30]
     ... [--json OUT.json] [--bound-from EARLIER.json]
 
@@ -144,11 +144,11 @@ def _real_cases(names: list[str], n_cuts: int) -> list[tuple[str, SensorLog, Con
     return out
 
 
-def _sim_cases(scenario: str, seeds: list[int], duration: float, step: float
-               ) -> list[tuple[str, SensorLog, Config, str, Any]]:
+def _sim_cases(scenario: str, seeds: list[int], duration: float, step: float,
+               nlos_excess: str = "gaussian") -> list[tuple[str, SensorLog, Config, str, Any]]:
     out = []
     for seed in seeds:
-        log = simulate(scenario, duration_s=duration, seed=seed)
+        log = simulate(scenario, duration_s=duration, seed=seed, nlos_excess=nlos_excess)
         t0 = int(log.ranges.t_ns[0])
         cuts = np.arange(15.0, duration + 1e-9, step)
         out.append((f"{scenario} seed {seed}", log, Config(), "none",
@@ -162,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1,2,3")
     p.add_argument("--duration", type=float, default=120.0, help="simulated log length, s")
     p.add_argument("--step", type=float, default=5.0, help="s between cut epochs (sims)")
+    p.add_argument("--nlos-excess", choices=("gaussian", "lognormal"), default="gaussian",
+                   help="law of the simulated NLOS excess (`uwbfuse simulate --nlos-excess`)")
     p.add_argument("--real", nargs="?", const=",".join(REAL_LOGS), default=None,
                    help="real logs instead of a simulated scenario")
     p.add_argument("--cuts", type=int, default=30, help="cut epochs per real log")
@@ -173,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         title = f"real logs, {args.cuts} cut epochs each"
     else:
         cases = _sim_cases(args.scenario, [int(s) for s in args.seeds.split(",")],
-                           args.duration, args.step)
+                           args.duration, args.step, args.nlos_excess)
         title = (f"`{args.scenario}`, {args.duration:.0f} s, cut every {args.step:g} s "
                  "from 15 s")
     earlier = json.loads(Path(args.bound_from).read_text()) if args.bound_from else {}
