@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import NLOS_EXCESS_LAWS
 from uwbfuse.errors import UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.eval.align import Alignment, fit_alignment
@@ -162,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", default="0,1,2,3")
     p.add_argument("--duration", type=float, default=120.0, help="simulated log length, s")
     p.add_argument("--step", type=float, default=5.0, help="s between cut epochs (sims)")
-    p.add_argument("--nlos-excess", choices=("gaussian", "lognormal"), default="gaussian",
+    p.add_argument("--nlos-excess", choices=NLOS_EXCESS_LAWS, default=NLOS_EXCESS_LAWS[0],
                    help="law of the simulated NLOS excess (`uwbfuse simulate --nlos-excess`)")
     p.add_argument("--real", nargs="?", const=",".join(REAL_LOGS), default=None,
                    help="real logs instead of a simulated scenario")

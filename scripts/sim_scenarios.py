@@ -24,6 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from uwbfuse.config import Config
+from uwbfuse.constants import NLOS_EXCESS_LAWS
 from uwbfuse.errors import UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.eval.evaluate import evaluate
@@ -64,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--jobs", type=int, default=1)
     p.add_argument("--anchor-offset-max", type=float, default=0.0,
                    help="constant per-anchor range offset, uniform within +-M, m")
-    p.add_argument("--nlos-excess", choices=("gaussian", "lognormal"), default="gaussian",
+    p.add_argument("--nlos-excess", choices=NLOS_EXCESS_LAWS, default=NLOS_EXCESS_LAWS[0],
                    help="law of the simulated NLOS excess (`uwbfuse simulate --nlos-excess`)")
     args = p.parse_args(argv)
     methods = args.methods.split(",")
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
                                args.anchor_offset_max, args.nlos_excess) for sc, sd in cells]
         results = dict(zip(cells, (f.result() for f in futures), strict=True))
     offsets = f", offsets +-{args.anchor_offset_max:g} m" if args.anchor_offset_max else ""
-    if args.nlos_excess != "gaussian":
+    if args.nlos_excess != NLOS_EXCESS_LAWS[0]:
         offsets += f", {args.nlos_excess} NLOS excess"
     print(f"| scenario ({len(seeds)} seeds x {args.duration:g} s{offsets}) | "
           + " | ".join(methods) + " |")

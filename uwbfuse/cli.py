@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from uwbfuse.constants import LABEL_THRESHOLD_M
+from uwbfuse.constants import LABEL_THRESHOLD_M, NLOS_EXCESS_LAWS
 from uwbfuse.errors import SimulationError, UwbfuseError
 
 if TYPE_CHECKING:
@@ -67,7 +67,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from uwbfuse.sim.simulator import simulate
 
     if get_fleet(args.scenario) is not None:
-        if args.nlos_excess != "gaussian":
+        if args.nlos_excess != NLOS_EXCESS_LAWS[0]:
             raise SimulationError("--nlos-excess applies to single-vehicle scenarios only")
         return _simulate_fleet(args)
 
@@ -280,7 +280,7 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--signal-quality", action="store_true",
                    help="ranges with RX and first-path power (dBm) on a custom range type "
                    "(uwbfuse_msgs/msg/UwbRange), named in the log's uwb_fields metadata")
-    s.add_argument("--nlos-excess", choices=("gaussian", "lognormal"), default="gaussian",
+    s.add_argument("--nlos-excess", choices=NLOS_EXCESS_LAWS, default=NLOS_EXCESS_LAWS[0],
                    help="law of the NLOS excess range: gaussian (Qiu 2022's fitted "
                    "N(mean, std), reads short about one NLOS range in five) or lognormal "
                    "(the same mean and std, never negative); single-vehicle scenarios")

@@ -247,6 +247,9 @@ COPLANAR_SPREAD = 0.3
 # m: 3x the LOS ranging std of DW1000-class radios (about 5 cm): a larger error is not LOS
 # noise but an excess path (NLOS) or a gross ranging fault, and either should be trusted less
 LABEL_THRESHOLD_M = 0.15
+# the simulator's laws of the NLOS excess range (`sim.nlos.nlos_excess`), the first the
+# default; here so that the CLI lists them without importing the simulator
+NLOS_EXCESS_LAWS = ("gaussian", "lognormal")
 # s: an older fix says little where a vehicle is (1 m at 0.5 m/s)
 MAX_REFERENCE_AGE_S = 2.0
 # fixes in the reference's line fit: about 1 s of 0.1 s epochs

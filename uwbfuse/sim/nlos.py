@@ -15,6 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
+from uwbfuse.constants import NLOS_EXCESS_LAWS
+
 F64 = NDArray[np.float64]
 
 
@@ -74,9 +76,6 @@ def unit_ar1(rng: np.random.Generator, n: int, dt: float, tau_s: float) -> F64:
     e = rng.standard_normal(n)
     e[0] /= np.sqrt(max(1.0 - phi * phi, 1e-12))  # start in the stationary distribution
     return lfilter([np.sqrt(1.0 - phi * phi)], [1.0, -phi], e)
-
-
-NLOS_EXCESS_LAWS = ("gaussian", "lognormal")
 
 
 def nlos_excess(x_slow: F64, x_white: F64, mean: float, std: float, slow_share: float,

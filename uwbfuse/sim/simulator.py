@@ -24,9 +24,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from uwbfuse.config import MapConfig
+from uwbfuse.constants import NLOS_EXCESS_LAWS
 from uwbfuse.errors import SimulationError
 from uwbfuse.sim.lidar import LidarPoses, lidar_poses
-from uwbfuse.sim.nlos import NLOS_EXCESS_LAWS
 from uwbfuse.sim.scenarios import SCENARIOS, Scenario, get_scenario
 from uwbfuse.sim.sensors import (
     ImuSamples,
