@@ -194,3 +194,18 @@ def test_kernel_threshold_follows_the_kernel(kernel: RobustKernel, tmp_path: Pat
     p.write_text(f'[uwb]\nrobust_kernel = "{kernel.value}"\nkernel_threshold = 2.0\n')
     assert load_config(p).uwb.kernel_threshold == 2.0
     assert UwbConfig().kernel_threshold == 1.345  # the default kernel, Huber
+
+
+def test_nlos_switch_time_reaches_the_graphs_chain(tmp_path):
+    """Test that `[nlos] switch_time` (s) reaches the one NLOS model and that a
+    non-positive one is a config error."""
+    from uwbfuse.config import load_config
+    from uwbfuse.errors import ConfigError
+    from uwbfuse.nlos import NlosModel
+
+    p = tmp_path / "c.toml"
+    p.write_text("[nlos]\nswitch_time = 3.5\n")
+    assert NlosModel.from_config(load_config(p)).switch_time == 3.5
+    p.write_text("[nlos]\nswitch_time = 0.0\n")
+    with pytest.raises(ConfigError, match="switch_time"):
+        load_config(p)

@@ -18,6 +18,7 @@ from uwbfuse.nlos import (
     jump_log_likelihoods,
     residual_jumps,
     residual_jumps_by_anchor,
+    switch_probabilities,
 )
 
 gtsam = pytest.importorskip("gtsam")
@@ -311,7 +312,8 @@ def test_residual_jumps_of_a_few_ranges_equal_the_vectorised_pass():
 
 def test_hmm_over_several_anchors_equals_one_call_per_anchor():
     """Test `hmm_filter_by_anchor` and `hmm_smooth_by_anchor` against `hmm_filter` and
-    `hmm_smooth` anchor by anchor, bit for bit (with jump evidence)."""
+    `hmm_smooth` anchor by anchor, bit for bit (with jump evidence), and with one switching
+    probability per range, all equal, against the scalar one."""
     rng = np.random.default_rng(3)
     m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
     n = 50
@@ -333,6 +335,48 @@ def test_hmm_over_several_anchors_equals_one_call_per_anchor():
         np.testing.assert_array_equal(
             gs[sel], hmm_smooth(ll_l[sel], ll_n[sel], m.p_switch, m.p_nlos, jl[sel],
                                 float(p0[sel[0]])))
+    each = np.full(n, m.p_switch)
+    g2, prior2 = hmm_filter_by_anchor(a, ll_l, ll_n, each, m.p_nlos, p_each.copy(), jl)
+    np.testing.assert_array_equal(g2, g)
+    np.testing.assert_array_equal(prior2, prior)
+    np.testing.assert_array_equal(
+        hmm_smooth_by_anchor(a, ll_l, ll_n, each, m.p_nlos, jl, p0), gs)
+
+
+@pytest.mark.parametrize("few", [16, 0])  # the Python loop and the numpy path
+def test_switch_probabilities_follow_each_anchors_time_between_ranges(monkeypatch, few):
+    """Test that the chain's redraw probability of a range is 1 - exp(-dt / switch_time)
+    with dt to its own anchor's previous range (interleaved anchors), from `last_t` for an
+    anchor's first range, and 1 where the anchor has none."""
+    monkeypatch.setattr("uwbfuse.nlos.FEW_SWITCH_RANGES", few)
+    t = np.array([0, 100, 200, 600, 1100], np.int64) * 1_000_000  # ns
+    a = np.array([0, 1, 0, 1, 0])
+    p = switch_probabilities(t, a, 2.0)
+    np.testing.assert_allclose(p, [1.0, 1.0, -math.expm1(-0.2 / 2.0),
+                                   -math.expm1(-0.5 / 2.0), -math.expm1(-0.9 / 2.0)])
+    last = np.array([-1_000_000_000, np.iinfo(np.int64).min], np.int64)
+    p = switch_probabilities(t, a, 2.0, last)
+    np.testing.assert_allclose(p[[0, 1]], [-math.expm1(-1.0 / 2.0), 1.0])
+
+
+def test_nlos_state_persists_for_a_time_whatever_the_radio_rate():
+    """Test that an anchor called NLOS, then ranging without evidence either way for 1 s,
+    keeps the same P(NLOS) at 10 ranges per second as at 2: the chain forgets in time
+    (p_nlos + (p0 - p_nlos) exp(-T / switch_time)), not per range."""
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05, switch_time=2.0)
+    out = []
+    for rate in (10, 2):
+        t = np.arange(rate + 1, dtype=np.int64) * (1_000_000_000 // rate)  # 0 .. 1 s
+        a = np.zeros(len(t), np.int64)
+        ll_l, ll_n = np.zeros(len(t)), np.zeros(len(t))
+        ll_n[0] = 20.0  # the first range is clearly NLOS
+        p = switch_probabilities(t, a, m.switch_time)
+        g, _ = hmm_filter_by_anchor(a, ll_l, ll_n, p, m.p_nlos, np.array([m.p_nlos]))
+        out.append(g[-1])
+    g0 = 1.0 / (1.0 + (1.0 - m.p_nlos) / m.p_nlos * math.exp(-20.0))
+    expected = m.p_nlos + (g0 - m.p_nlos) * math.exp(-1.0 / 2.0)
+    assert out[0] == pytest.approx(expected, abs=1e-9)
+    assert out[1] == pytest.approx(expected, abs=1e-9)
 
 
 def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors():

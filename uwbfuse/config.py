@@ -453,9 +453,14 @@ class NlosConfig(_Section):
     rate: float = Field(
         0.3, gt=0, lt=1, description="graph: prior fraction of NLOS ranges (EM-adapted)")
     switch: float = Field(
-        0.05, gt=0, lt=1, description="prior probability that an anchor's LOS/NLOS state "
-        "changes between two of its ranges (the graph's chain; the filters' prior, which they "
-        "re-estimate from their posteriors)")
+        0.05, gt=0, lt=1, description="the filters' prior probability that an anchor's "
+        "LOS/NLOS state changes between two of its ranges (they re-estimate it per range from "
+        "their posteriors; the graph's chain runs in time: switch_time)")
+    switch_time: float = Field(
+        2.0, gt=0, description="graph (online and batch): mean time between redraws of an "
+        "anchor's LOS/NLOS state, seconds: two of its ranges dt apart are redrawn with "
+        "probability 1 - exp(-dt / switch_time), so a state persists for a time whatever the "
+        "radio's rate (2 s: the per-range 0.05 at 10 ranges per anchor per second)")
     range_los_std: float = Field(
         0.026, gt=0, description="per-range model (wls; the filters' EM prior): LOS range "
         "error std, metres (Qiu 2022, Table 2)")

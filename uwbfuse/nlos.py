@@ -8,9 +8,12 @@ sigma_los) (`[uwb] sigma`: the radio's LOS noise). In NLOS the direct path is bl
 range reads long by an excess: a slowly varying part per anchor (std `sigma_slow`, Gauss-Markov
 with correlation time `tau_s`, held per `segment_s`) around a mean `mu_nlos`, plus a fast
 per-range part (std `sigma_nlos`). A range is NLOS with prior probability `p_nlos`, and an
-anchor's LOS/NLOS state persists: it changes between two of its ranges with probability
-`p_switch` (a two-state Markov chain: `hmm_filter` online, `hmm_smooth` in batch, each
-transition weighed by the jump of the residual, `jump_log_likelihoods`).
+anchor's LOS/NLOS state persists: between two of its ranges dt apart it is redrawn (from the
+stationary rate `p_nlos`) with probability 1 - exp(-dt / `switch_time`) in the graph
+(`switch_probabilities`; a two-state Markov chain: `hmm_filter` online, `hmm_smooth` in batch,
+each transition weighed by the jump of the residual, `jump_log_likelihoods`), and with a
+probability per range that they estimate from their posteriors (prior `p_switch`) in the
+filters.
 
 Two views of the same physics, and the one named difference between them:
 
@@ -27,10 +30,11 @@ Two views of the same physics, and the one named difference between them:
   reproduce Qiu's tables; `calibrate-nlos` fits them (per anchor) against ground truth.
 
 The two share the physics (LOS noise, a positive NLOS excess of about 0.15 m spread: 0.145
-per range, hypot(0.13, 0.07) = 0.148 as state + noise) and the persistence (`tau_s`,
-`p_switch`, read by the graph and the filters). Their means, LOS spreads and shares differ
-because they are different quantities: the state model's start values are loose priors that
-its EM shrinks (LOS 0.10 m upper bound, excess 0.3 m over the LOS offset, share 0.3), the
+per range, hypot(0.13, 0.07) = 0.148 as state + noise) and the persistence (`tau_s`, and the
+class's `switch_time` / `p_switch`: the same default at 10 ranges per anchor per second).
+Their means, LOS spreads and shares differ because they are different quantities: the state
+model's start values are loose priors that its EM shrinks (LOS 0.10 m upper bound, excess
+0.3 m over the LOS offset, share 0.3), the
 per-range model is a calibration a method without EM keeps (LOS 0.026 m absolute error,
 NLOS mean 0.114 m absolute, share 0.2); `docs/results.md` (2026-12-02, session 10, "One
 NLOS model") says how each value is obtained.
@@ -58,6 +62,9 @@ from uwbfuse.constants import (
 from uwbfuse.streams import AnchorMap
 
 F64 = NDArray[np.float64]
+NO_PREVIOUS_RANGE = np.iinfo(np.int64).min  # ns: an anchor's previous range stamp before its first
+# ranges up to which `switch_probabilities` loops in Python (numpy's per-call cost above)
+FEW_SWITCH_RANGES = 16
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _FEW_JUMPS = 16  # `residual_jumps_by_anchor` in Python up to this many ranges
@@ -86,8 +93,9 @@ class NlosModel:
     """The range-error model (see the module docstring); lengths in metres, times in seconds.
 
     State model: sigma_los, sigma_nlos (fast part), mu_nlos (over the LOS offset), sigma_slow,
-    tau_s, segment_s, p_nlos, p_switch. Per-range model: `per_range`, overridden per anchor
-    id by `per_anchor` (`samples`: ranges per anchor of a calibration)."""
+    tau_s, segment_s, p_nlos, p_switch, switch_time. Per-range model: `per_range`,
+    overridden per anchor id by `per_anchor` (`samples`: ranges per anchor of a
+    calibration)."""
 
     sigma_los: float
     sigma_nlos: float
@@ -97,6 +105,7 @@ class NlosModel:
     segment_s: float
     p_nlos: float
     p_switch: float
+    switch_time: float = 2.0  # s (`[nlos] switch_time`)
     per_range: NlosParams = field(default_factory=lambda: _per_range(NlosConfig()))
     per_anchor: dict[str, NlosParams] = field(default_factory=dict)
     samples: dict[str, int] = field(default_factory=dict)
@@ -107,7 +116,7 @@ class NlosModel:
         c = config.nlos
         per = {k: NlosParams(*map(float, v)) for k, v in c.anchor.items()}
         return cls(config.uwb.sigma, c.excess_sigma, c.excess_mean, c.excess_slow_sigma,
-                   c.tau, c.segment, c.rate, c.switch, _per_range(c), per)
+                   c.tau, c.segment, c.rate, c.switch, c.switch_time, _per_range(c), per)
 
     def arrays(self, anchors: AnchorMap) -> tuple[F64, F64, F64, F64]:
         """Per-range model (los_std, nlos_mean, nlos_std, nlos_prior), each (M,) in
@@ -321,6 +330,45 @@ def _residual_jumps_few(
     return np.array(out, dtype=np.float64)
 
 
+def switch_probabilities(t_ns: np.ndarray, anchor: np.ndarray, switch_time: float,
+                         last_t: np.ndarray | None = None) -> F64:
+    """Per range, the probability (N,) that its anchor's LOS/NLOS state was redrawn since the
+    anchor's previous range: 1 - exp(-dt / switch_time), dt (s) to the previous range of the
+    same anchor in `t_ns` (ns, (N,); each anchor's ranges in time order), or for an anchor's
+    first range to `last_t[anchor]` (ns, per anchor; None or NO_PREVIOUS_RANGE there: 1, no memory).
+
+    A state persists for a time (an obstacle between the tag and the anchor for as long as
+    the vehicle takes to pass it), not for a number of ranges: a per-range probability tied
+    the chain's memory to the radio's rate (0.05 a range was 2 s at 10 ranges per anchor per
+    second, 10 s at 2, 80 s on Plaza's 4 s round robin)."""
+    if len(t_ns) <= FEW_SWITCH_RANGES:  # a keyframe's ranges: Python floats, no sort
+        last: dict[int, int] = {}
+        out_l = []
+        for ti, ai in zip(np.asarray(t_ns).tolist(), np.asarray(anchor).tolist(), strict=True):
+            prev = last.get(ai, NO_PREVIOUS_RANGE if last_t is None else int(last_t[ai]))
+            last[ai] = ti
+            out_l.append(1.0 if prev == NO_PREVIOUS_RANGE
+                         else -math.expm1(-max(ti - prev, 0) / 1e9 / switch_time))
+        return np.array(out_l, dtype=np.float64)
+    t = np.asarray(t_ns, np.int64)
+    a = np.asarray(anchor, np.int64)
+    order = np.lexsort((t, a))  # stable: each anchor's ranges keep their order
+    ts, as_ = t[order], a[order]
+    prev = np.full(len(t), NO_PREVIOUS_RANGE, np.int64)
+    same = np.zeros(len(t), dtype=bool)
+    same[1:] = as_[1:] == as_[:-1]
+    prev[1:][same[1:]] = ts[:-1][same[1:]]
+    if last_t is not None:
+        prev[~same] = np.asarray(last_t, np.int64)[as_[~same]]
+    p = np.ones(len(t))
+    known = prev != NO_PREVIOUS_RANGE
+    dt = np.maximum(ts[known] - prev[known], 0) / 1e9
+    p[known] = -np.expm1(-dt / switch_time)
+    out = np.empty(len(t))
+    out[order] = p
+    return out
+
+
 def hmm_filter(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float, p0: float,
     jump_ll: np.ndarray | None = None,
@@ -339,19 +387,22 @@ def hmm_filter(
 
 
 def hmm_filter_by_anchor(
-    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64,
     p_nlos: float, p_last: np.ndarray, jump_ll: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`hmm_filter` of the ranges of several anchors (each anchor's in time order): P(NLOS)
     and the predicted prior per range. Anchor a's chain starts from `p_last[a]` and leaves
-    its last P(NLOS) there (in place). The inputs are prepared once for all ranges (the
-    same numbers as anchor by anchor: every step is elementwise)."""
+    its last P(NLOS) there (in place). `p_switch`: one probability, or one per range (N,)
+    for the step into it (`switch_probabilities`). The inputs are prepared once for all
+    ranges (the same numbers as anchor by anchor: every step is elementwise)."""
     d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
+    per_range = np.asarray(p_switch, np.float64).tolist() if np.ndim(p_switch) else None
     g, prior = [0.0] * len(d), [0.0] * len(d)
     for a, rows in _rows_by_anchor(anchor):
         out, p_last[a], priors = _filter_chain(
             [d[i] for i in rows], None if jl is None else [jl[i] for i in rows],
-            p_switch, p_nlos, p_last[a])
+            float(p_switch) if per_range is None else [per_range[i] for i in rows],
+            p_nlos, p_last[a])
         for i, x, q in zip(rows, out, priors, strict=True):
             g[i], prior[i] = x, q
     return np.array(g, dtype=np.float64), np.array(prior, dtype=np.float64)
@@ -375,17 +426,18 @@ def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray 
     return d, jl
 
 
-def _filter_chain(d: list[float], jl: list | None, p_switch: float, p_nlos: float,
-                  p0: float) -> tuple[list[float], float, list[float]]:
+def _filter_chain(d: list[float], jl: list | None, p_switch: float | list[float],
+                  p_nlos: float, p0: float) -> tuple[list[float], float, list[float]]:
     """`hmm_filter`'s loop over one chain in Python floats (numpy item access was most of
-    its time; the same values)."""
+    its time; the same values); `p_switch` one value or one per range."""
     out, priors = [], []
     p = p0
-    t_ln = p_switch * p_nlos  # P(LOS -> NLOS)
-    t_nl = p_switch * (1.0 - p_nlos)  # P(NLOS -> LOS)
-    for i in range(len(d)):
+    steps = p_switch if isinstance(p_switch, list) else [p_switch] * len(d)
+    for i, q in enumerate(steps):
+        t_ln = q * p_nlos  # P(LOS -> NLOS)
+        t_nl = q * (1.0 - p_nlos)  # P(NLOS -> LOS)
         if jl is None:
-            prior = (1.0 - p_switch) * p + p_switch * p_nlos
+            prior = (1.0 - q) * p + q * p_nlos
         else:
             (j00, j01), (j10, j11) = jl[i]
             to_n = (1.0 - p) * t_ln * j01 + p * (1.0 - t_nl) * j11
@@ -421,13 +473,14 @@ def hmm_smooth(
 
 
 def hmm_smooth_by_anchor(
-    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float,
+    anchor: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64,
     p_nlos: float, jump_ll: np.ndarray | None = None, p0: np.ndarray | None = None,
 ) -> np.ndarray:
     """`hmm_smooth` of the ranges of several anchors (each anchor's in time order), each
-    anchor's chain from `p0` (N,) of its first range (None: p_nlos, as `hmm_smooth`). The
-    inputs are prepared once for all ranges (the same numbers as anchor by anchor: every
-    step is elementwise)."""
+    anchor's chain from `p0` (N,) of its first range (None: p_nlos, as `hmm_smooth`);
+    `p_switch` one probability or one per range (N,) for the step into it. The inputs are
+    prepared once for all ranges (the same numbers as anchor by anchor: every step is
+    elementwise)."""
     e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
     p0_list = [None] * len(e0) if p0 is None else np.asarray(p0, np.float64).tolist()
     g = [0.0] * len(e0)
@@ -440,15 +493,17 @@ def hmm_smooth_by_anchor(
 
 
 def _smooth_inputs(
-    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float, p_nlos: float,
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64, p_nlos: float,
     jump_ll: np.ndarray | None,
 ) -> tuple[list[float], list[float], tuple[list[float], ...]]:
     """`hmm_smooth`'s per-range inputs as Python lists: the two likelihoods scaled to
     their larger one, and the transition matrix into each range (t00, t01, t10, t11),
-    each entry scaled by the jump evidence if any."""
+    each entry scaled by the jump evidence if any; `p_switch` one value or (N,)."""
     n = len(ll_los)
-    a = np.array([[1.0 - p_switch * p_nlos, p_switch * p_nlos],
-                  [p_switch * (1.0 - p_nlos), 1.0 - p_switch * (1.0 - p_nlos)]])
+    q = np.asarray(p_switch, np.float64)[..., None, None]  # () or (N,): (1,1) or (N,1,1)
+    a = np.concatenate([np.concatenate([1.0 - q * p_nlos, q * p_nlos], axis=-1),
+                        np.concatenate([q * (1.0 - p_nlos), 1.0 - q * (1.0 - p_nlos)], axis=-1)],
+                       axis=-2)
     m = np.maximum(ll_los, ll_nlos)
     e0, e1 = np.exp(ll_los - m).tolist(), np.exp(ll_nlos - m).tolist()
     if jump_ll is None:

@@ -76,10 +76,12 @@ from uwbfuse.graph.wheel import (
     wheel_scale_evidence,
 )
 from uwbfuse.nlos import (
+    NO_PREVIOUS_RANGE,
     NlosModel,
     hmm_filter_by_anchor,
     jump_log_likelihoods,
     residual_jumps_by_anchor,
+    switch_probabilities,
 )
 from uwbfuse.positioning.initialisation import applied_lever, range_scale_applies
 from uwbfuse.positioning.nlos_classifier import RangePriors
@@ -623,6 +625,8 @@ class GraphBuilder:
         self.jumps = True  # use residual jumps between consecutive ranges in the HMM
         self._jump_r = np.zeros(m)  # per anchor: last range residual (m) and its stamp
         self._jump_t = np.full(m, np.iinfo(np.int64).min // 2, dtype=np.int64)
+        # per anchor: the stamp of its newest range in the chain (`switch_probabilities`)
+        self._switch_t = np.full(m, NO_PREVIOUS_RANGE, dtype=np.int64)
         self._predicted_window = ResidualWindow()
         # online choice of the range model by prequential score: the log predictive density
         # (nats) of each new range under the mixture and under the robust model, summed
@@ -1108,8 +1112,10 @@ class GraphBuilder:
             r_nlos = z - pred - e_pred
             ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, e_var)
             ll_n = ll_n + evidence
+            p_switch = switch_probabilities(t, a, mix.switch_time, self._switch_t)
+            self._switch_t[a] = t  # t is time-sorted: each anchor's last stamp is written last
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
-            g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, mix.p_switch, mix.p_nlos,
+            g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, p_switch, mix.p_nlos,
                                             self.anchor_p, jump)
             self._online_m_step(r_los, r_nlos, g)
             settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)

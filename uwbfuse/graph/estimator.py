@@ -81,6 +81,7 @@ from uwbfuse.nlos import (
     hmm_smooth_by_anchor,
     jump_log_likelihoods,
     residual_jumps_by_anchor,
+    switch_probabilities,
 )
 from uwbfuse.positioning.nlos_classifier import RangePriors
 from uwbfuse.positioning.pose_start import PoseStartInitialiser
@@ -491,7 +492,8 @@ class GraphEstimator(EstimatorBase):
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         ll_n = ll_n + cols["evidence"][rows]  # the classifier's
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
-        g = hmm_smooth_by_anchor(anchor, ll_l, ll_n, mix.p_switch, mix.p_nlos, jl, prior)
+        p_switch = switch_probabilities(t, anchor, mix.switch_time)  # first: `prior` given
+        g = hmm_smooth_by_anchor(anchor, ll_l, ll_n, p_switch, mix.p_nlos, jl, prior)
         self._replace_moved(b, queued, now, g, g_cur, e, r_los)
 
     def _reviewable(self, sm: OnlineSmoother, b: GraphBuilder, now: int

@@ -67,7 +67,7 @@ from uwbfuse.graph.uwb import (
     robust_log_density,
 )
 from uwbfuse.graph.wheel import between_factors, wheel_scale_evidence
-from uwbfuse.nlos import NlosModel, hmm_smooth_by_anchor
+from uwbfuse.nlos import NlosModel, hmm_smooth_by_anchor, switch_probabilities
 from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import NS_PER_S
 
@@ -692,11 +692,13 @@ def run_lm(graph: gtsam.NonlinearFactorGraph, initial: gtsam.Values,
 
 
 def _smooth_per_anchor(ll_los: np.ndarray, ll_nlos: np.ndarray, anchor: np.ndarray,
-                       order: np.ndarray, inv: np.ndarray, mix: NlosModel) -> np.ndarray:
+                       order: np.ndarray, inv: np.ndarray, mix: NlosModel,
+                       p_switch: np.ndarray) -> np.ndarray:
     """E-step: each range's NLOS responsibility from its LOS and NLOS log-likelihoods, one
     two-state HMM smoothing per anchor over its ranges in time (`order` sorts the ranges
-    by anchor then time, `inv` undoes it)."""
-    gs = hmm_smooth_by_anchor(anchor[order], ll_los[order], ll_nlos[order], mix.p_switch,
+    by anchor then time, `inv` undoes it; `p_switch` (N,) in that order, the chain's step
+    into each range, `nlos.switch_probabilities`)."""
+    gs = hmm_smooth_by_anchor(anchor[order], ll_los[order], ll_nlos[order], p_switch,
                               mix.p_nlos)
     return gs[inv]
 
@@ -899,6 +901,8 @@ class _EmRun:
         self.order = np.lexsort((rec["t_ns"], a_r))
         self.inv = np.empty_like(self.order)
         self.inv[self.order] = np.arange(len(self.order))
+        self.p_switch = switch_probabilities(rec["t_ns"][self.order], a_r[self.order],
+                                             mix.switch_time)
         self.states = states = _NlosStates(a_r, seg_r, mix) if g_cfg.nlos else None
         self.st_idx = st_idx = states.index(a_r, seg_r) if states is not None else None
         self.h, self.r_los = self.residuals(self.values)
@@ -973,10 +977,12 @@ class _EmRun:
                                          ll_n)
         evidence = self.rec["evidence"]
         if np.any(evidence):  # the learned classifier's log-odds, at the weight the log gives
-            g_resid = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix)
+            g_resid = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix,
+                                         self.p_switch)
             self.classifier_weight = classifier_weight(g_resid, evidence)
             ll_n = ll_n + self.classifier_weight * evidence
-        self.g = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix)
+        self.g = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix,
+                                         self.p_switch)
         mix.m_step(self.r_los, r_nlos, self.g, self.prior)
         self.sig_l = mix.sigma_los
 
