@@ -357,6 +357,14 @@ def test_switch_probabilities_follow_each_anchors_time_between_ranges(monkeypatc
     last = np.array([-1_000_000_000, np.iinfo(np.int64).min], np.int64)
     p = switch_probabilities(t, a, 2.0, last)
     np.testing.assert_allclose(p[[0, 1]], [-math.expm1(-1.0 / 2.0), 1.0])
+    # both paths bit for bit (a keyframe's few ranges take the loop, a window the sort)
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 4, 12)
+    t = np.sort(rng.integers(0, 5_000_000_000, 12)).astype(np.int64)
+    p = switch_probabilities(t, a, 2.0, np.full(4, -10**9, np.int64))
+    monkeypatch.setattr("uwbfuse.nlos.FEW_SWITCH_RANGES", 16 - few)
+    np.testing.assert_array_equal(
+        switch_probabilities(t, a, 2.0, np.full(4, -10**9, np.int64)), p)
 
 
 def test_nlos_state_persists_for_a_time_whatever_the_radio_rate():

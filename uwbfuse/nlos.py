@@ -341,15 +341,15 @@ def switch_probabilities(t_ns: np.ndarray, anchor: np.ndarray, switch_time: floa
     the vehicle takes to pass it), not for a number of ranges: a per-range probability tied
     the chain's memory to the radio's rate (0.05 a range was 2 s at 10 ranges per anchor per
     second, 10 s at 2, 80 s on Plaza's 4 s round robin)."""
-    if len(t_ns) <= FEW_SWITCH_RANGES:  # a keyframe's ranges: Python floats, no sort
+    if len(t_ns) <= FEW_SWITCH_RANGES:  # a keyframe's ranges: no sort, one numpy call
         last: dict[int, int] = {}
-        out_l = []
+        dt_l = []  # s; NaN: no previous range
         for ti, ai in zip(np.asarray(t_ns).tolist(), np.asarray(anchor).tolist(), strict=True):
             prev = last.get(ai, NO_PREVIOUS_RANGE if last_t is None else int(last_t[ai]))
             last[ai] = ti
-            out_l.append(1.0 if prev == NO_PREVIOUS_RANGE
-                         else -math.expm1(-max(ti - prev, 0) / 1e9 / switch_time))
-        return np.array(out_l, dtype=np.float64)
+            dt_l.append(math.nan if prev == NO_PREVIOUS_RANGE else max(ti - prev, 0) / 1e9)
+        dt = np.array(dt_l, dtype=np.float64)
+        return np.where(np.isnan(dt), 1.0, -np.expm1(-dt / switch_time))
     t = np.asarray(t_ns, np.int64)
     a = np.asarray(anchor, np.int64)
     order = np.lexsort((t, a))  # stable: each anchor's ranges keep their order
