@@ -34,10 +34,10 @@ per range, hypot(0.13, 0.07) = 0.148 as state + noise) and the persistence (`tau
 class's `switch_time` / `p_switch`: the same default at 10 ranges per anchor per second).
 Their means, LOS spreads and shares differ because they are different quantities: the state
 model's start values are loose priors that its EM shrinks (LOS 0.10 m upper bound, excess
-0.3 m over the LOS offset, share 0.3), the
-per-range model is a calibration a method without EM keeps (LOS 0.026 m absolute error,
-NLOS mean 0.114 m absolute, share 0.2); `docs/results.md` (2026-12-02, session 10, "One
-NLOS model") says how each value is obtained.
+0.3 m over the LOS offset, share 0.3), the per-range model is a calibration a method
+without EM keeps (LOS 0.026 m absolute error, NLOS mean 0.114 m absolute, share 0.2);
+`docs/results.md` (2026-12-02, session 10, "One NLOS model") says how each value is
+obtained.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from uwbfuse.constants import (
     SIGMA_LOS_MIN,
     SIGMA_NLOS_MIN,
 )
-from uwbfuse.streams import AnchorMap
+from uwbfuse.streams import NS_PER_S, AnchorMap
 
 F64 = NDArray[np.float64]
 NO_PREVIOUS_RANGE = np.iinfo(np.int64).min  # ns: an anchor's previous range stamp before its first
@@ -347,7 +347,7 @@ def switch_probabilities(t_ns: np.ndarray, anchor: np.ndarray, switch_time: floa
         for ti, ai in zip(np.asarray(t_ns).tolist(), np.asarray(anchor).tolist(), strict=True):
             prev = last.get(ai, NO_PREVIOUS_RANGE if last_t is None else int(last_t[ai]))
             last[ai] = ti
-            dt_l.append(math.nan if prev == NO_PREVIOUS_RANGE else max(ti - prev, 0) / 1e9)
+            dt_l.append(math.nan if prev == NO_PREVIOUS_RANGE else max(ti - prev, 0) / NS_PER_S)
         dt = np.array(dt_l, dtype=np.float64)
         return np.where(np.isnan(dt), 1.0, -np.expm1(-dt / switch_time))
     t = np.asarray(t_ns, np.int64)
@@ -362,7 +362,7 @@ def switch_probabilities(t_ns: np.ndarray, anchor: np.ndarray, switch_time: floa
         prev[~same] = np.asarray(last_t, np.int64)[as_[~same]]
     p = np.ones(len(t))
     known = prev != NO_PREVIOUS_RANGE
-    dt = np.maximum(ts[known] - prev[known], 0) / 1e9
+    dt = np.maximum(ts[known] - prev[known], 0) / NS_PER_S
     p[known] = -np.expm1(-dt / switch_time)
     out = np.empty(len(t))
     out[order] = p

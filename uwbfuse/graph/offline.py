@@ -982,7 +982,7 @@ class _EmRun:
             self.classifier_weight = classifier_weight(g_resid, evidence)
             ll_n = ll_n + self.classifier_weight * evidence
         self.g = _smooth_per_anchor(ll_l, ll_n, self.a_r, self.order, self.inv, mix,
-                                         self.p_switch)
+                                    self.p_switch)
         mix.m_step(self.r_los, r_nlos, self.g, self.prior)
         self.sig_l = mix.sigma_los
 
