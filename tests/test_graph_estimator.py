@@ -813,3 +813,28 @@ def test_imu_and_uwb_without_wheels_gain_from_solving_every_keyframe():
     auto = estimate(log, Method.ISAM2, Config(), covariance=False)
     three = estimate(log, Method.ISAM2, Config(graph={"update_every": 3}), covariance=False)
     assert _ate(auto.trajectory, log) < 0.7 * _ate(three.trajectory, log)
+
+
+def _class_flips(rc) -> int:
+    """LOS/NLOS changes along each anchor's ranges (time order) of `RangeClasses`."""
+    flips = 0
+    for a in np.unique(rc.anchor):
+        sel = rc.anchor == a
+        cls = rc.p_nlos[sel][np.argsort(rc.t_ns[sel], kind="stable")] > 0.5
+        flips += int(np.count_nonzero(cls[1:] != cls[:-1]))
+    return flips
+
+
+def test_nlos_switch_time_sets_how_long_the_online_classes_persist():
+    """Test that `[nlos] switch_time` reaches isam2's LOS/NLOS chain: on a heavy-NLOS log,
+    a chain that forgets in 0.02 s (about memoryless at 10 ranges per anchor per second)
+    changes its ranges' classes more often than the default 2 s one, and one that holds for
+    a minute less often."""
+    log = simulate("warehouse-nlos", 40.0, 0)
+    flips = {}
+    for st in (0.02, 2.0, 60.0):
+        cfg = Config.model_validate({"nlos": {"switch_time": st}})
+        res = estimate(log, Method.ISAM2, cfg, covariance=False)
+        assert res.range_classes is not None
+        flips[st] = _class_flips(res.range_classes)
+    assert flips[0.02] > flips[2.0] > flips[60.0], flips
