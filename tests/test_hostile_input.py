@@ -430,7 +430,8 @@ def test_json_wheel_messages_with_bad_fields(tmp_path: Path, stamp: object, v: o
     "[uwb.range_offset]\nA0 = nan\n", "[nlos.anchor]\nA0 = [nan, 0.1, 0.1, 0.5]\n",
     "[wheel]\ntrack_width = \"0.5\"\n", "[wheel]\ntrack_width = true\n",
     "[output]\nrate = 1e-320\n", "[graph]\nlag = 1e300\n", "[anchors]\nA0 = [true, 1, 2]\n",
-    "[ukf]\nbeta = inf\n",
+    "[ukf]\nbeta = inf\n", "[nlos.anchor]\nA0 = [-0.1, 0.1, 0.1, 0.2]\n",
+    "[nlos.anchor]\nA0 = [0.03, 0.1, 1e-300, 0.2]\n", "[nlos.anchor]\nA0 = [0.03, 0.1, 0.1, 1.5]\n",
 ])
 def test_config_rejects_non_finite_and_coerced_values(tmp_path: Path, text: str) -> None:
     """test that inf/NaN, booleans or text for numbers and absurd magnitudes are errors"""
@@ -439,6 +440,17 @@ def test_config_rejects_non_finite_and_coerced_values(tmp_path: Path, text: str)
     with pytest.raises(ConfigError, match="bad value for") as e:
         load_config(p)
     assert "\n" not in str(e.value)
+
+
+def test_config_accepts_tiny_signed_coordinates(tmp_path: Path) -> None:
+    """test that a quaternion or position component computed in float64 (cos(pi / 2) =
+    6e-17) is a valid setting: the lower magnitude bound is for positive quantities only"""
+    p = tmp_path / "c.toml"
+    p.write_text("[extrinsics]\nimu_in_base = [0.1, 0, 0.2, 0, 0, 1.0, 6.123233995736766e-17]\n"
+                 "tag_in_base = [1e-17, 0, 0.5]\n[anchors]\nA0 = [-3e-15, 0, 2]\n")
+    cfg = load_config(p)
+    assert cfg.extrinsics.imu_in_base[6] == pytest.approx(6.123233995736766e-17)
+    assert cfg.anchors["A0"][0] == pytest.approx(-3e-15)
 
 
 def test_config_that_is_not_utf8_or_not_a_file(tmp_path: Path) -> None:

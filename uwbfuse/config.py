@@ -27,21 +27,24 @@ from pydantic import (
 
 from uwbfuse.errors import ConfigError
 
-# |x| of any number in the config, SI units: smaller (but not 0) or larger is a typo or a
-# value whose square or inverse overflows (a sigma of 1e-320 is an infinite weight)
+# |x| of any number in the config, SI units: larger is a typo or a value whose square
+# overflows; a positive quantity (sigma, rate, time) smaller but not 0 is a typo or an
+# infinite weight (a sigma of 1e-320). Signed coordinates and quaternion components may be
+# tiny (cos(pi / 2) is 6e-17 in float64).
 MIN_MAGNITUDE = 1e-12
 MAX_MAGNITUDE = 1e9
 
 
-def _check_plain(v: Any, ann: Any) -> None:
+def _check_plain(v: Any, ann: Any, positive: bool = False) -> None:
     """Raise ValueError where pydantic's lax mode would coerce (true -> 1.0, "0.5" -> 0.5,
-    1 -> true) or where a number is beyond MIN_MAGNITUDE/MAX_MAGNITUDE."""
+    1 -> true) or where a number is above MAX_MAGNITUDE or, for a `positive` quantity,
+    non-zero below MIN_MAGNITUDE."""
     origin, args = get_origin(ann), get_args(ann)
     if origin in (Union, types.UnionType):
         errors = []
         for a in args:
             try:
-                _check_plain(v, a)
+                _check_plain(v, a, positive)
                 return
             except ValueError as e:
                 errors.append(str(e))
@@ -53,18 +56,18 @@ def _check_plain(v: Any, ann: Any) -> None:
     if origin in (tuple, list) and isinstance(v, (list, tuple)):
         items = args if origin is tuple and Ellipsis not in args else args[:1] * len(v)
         for x, a in zip(v, items, strict=False):
-            _check_plain(x, a)
+            _check_plain(x, a, positive)
         return
     if origin is dict and isinstance(v, dict) and len(args) == 2:
         for x in v.values():
-            _check_plain(x, args[1])
+            _check_plain(x, args[1], positive)
         return
     if ann in (float, int):
         if isinstance(v, (bool, str)):
             got = "a boolean" if isinstance(v, bool) else "text"
             raise ValueError(f"expected a number, got {got}")
-        if isinstance(v, (int, float)) and math.isfinite(v) and v != 0 and not (
-                MIN_MAGNITUDE <= abs(v) <= MAX_MAGNITUDE):
+        if isinstance(v, (int, float)) and math.isfinite(v) and (
+                abs(v) > MAX_MAGNITUDE or (positive and v != 0 and abs(v) < MIN_MAGNITUDE)):
             raise ValueError(f"{v!r} is beyond the magnitudes a setting may have "
                              f"({MIN_MAGNITUDE:g} to {MAX_MAGNITUDE:g})")
     elif ann is bool and not isinstance(v, bool):
@@ -83,7 +86,11 @@ class _Section(BaseModel):
     @classmethod
     def _no_coercion(cls, v: Any, info: ValidationInfo) -> Any:
         if info.field_name is not None:
-            _check_plain(v, cls.model_fields[info.field_name].annotation)
+            field = cls.model_fields[info.field_name]
+            positive = any((getattr(m, "gt", None) is not None and m.gt >= 0)
+                           or (getattr(m, "ge", None) is not None and m.ge >= 0)
+                           for m in field.metadata)
+            _check_plain(v, field.annotation, positive)
         return v
 
 
@@ -478,6 +485,21 @@ class NlosConfig(_Section):
         description="per-anchor per-range model [los_std, nlos_mean, nlos_std, nlos_prior] "
         "(m, m, m, 0..1) from calibrate-nlos; overrides the range_* values (wls)",
     )
+
+    @field_validator("anchor")
+    @classmethod
+    def _per_anchor_model(
+        cls, v: dict[str, tuple[float, float, float, float]]
+    ) -> dict[str, tuple[float, float, float, float]]:
+        """Each anchor's model as the range_* fields are bounded: positive stds (at least
+        MIN_MAGNITUDE: a std of 1e-300 is an infinite weight), a prior in [0, 1)."""
+        for a, (los_std, _mean, nlos_std, prior) in v.items():
+            if not (los_std >= MIN_MAGNITUDE and nlos_std >= MIN_MAGNITUDE):
+                raise ValueError(f"anchor {a!r}: los_std and nlos_std must be positive (m), "
+                                 f"got {los_std:g} and {nlos_std:g}")
+            if not 0.0 <= prior < 1.0:
+                raise ValueError(f"anchor {a!r}: nlos_prior must be in [0, 1), got {prior:g}")
+        return v
 
 
 class PoseConfig(_Section):
