@@ -1,0 +1,58 @@
+# SPDX-License-Identifier: BSD-3-Clause
+"""scripts/sweep_sites.py: its random sites are reproducible, valid logs and valid configs."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from uwbfuse.config import Config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def sweep() -> ModuleType:
+    name = "uwbfuse_sweep_sites_script"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / "sweep_sites.py")
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return sys.modules[name]
+
+
+def test_draws_are_reproducible_and_differ(sweep: ModuleType) -> None:
+    """test that a (seed, draw) pair gives the same site every time and other draws others"""
+    assert sweep._draw(0, 3, 60.0) == sweep._draw(0, 3, 60.0)
+    sites = {repr(sweep._draw(s, d, 60.0)) for s in (0, 1) for d in range(8)}
+    assert len(sites) == 16
+
+
+def test_drawn_extrinsics_are_a_valid_config(sweep: ModuleType) -> None:
+    """test that every drawn lever arm and turned IMU passes the config's validation (a
+    float64 quaternion component such as cos(pi / 2) = 6e-17 once failed it)"""
+    n_imu = 0
+    for d in range(40):
+        _, o, extrinsics = sweep._draw(0, d, 60.0)
+        Config.model_validate({"extrinsics": extrinsics})
+        n_imu += "imu_in_base" in extrinsics
+        assert set(extrinsics) <= {"tag_in_base", "imu_in_base"}
+        assert all(o[k] == v for k, v in extrinsics.items())
+    assert n_imu > 0
+
+
+def test_a_draw_runs_end_to_end(sweep: ModuleType) -> None:
+    """test that a draw with a turned IMU simulates and that a method on it gives a finite
+    error in metres, and that the table's best baseline ignores the graph's rows"""
+    draw = next(d for d in range(40) if "imu_in_base" in sweep._draw(0, d, 15.0)[2])
+    row = sweep._one(0, draw, 15.0, ["ekf"])
+    assert row["draw"] == draw and math.isfinite(row["ate"]["ekf"]) and row["ate"]["ekf"] < 5.0
+    assert sweep._best_baseline({"isam2": 0.01, "ekf": 0.2, "wls": 0.3}) == 0.2
+    assert math.isnan(sweep._best_baseline({"isam2": 0.01}))
