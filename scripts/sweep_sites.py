@@ -40,7 +40,7 @@ from uwbfuse.errors import SimulationError, UwbfuseError
 from uwbfuse.estimator import Method
 from uwbfuse.eval.evaluate import evaluate
 from uwbfuse.pipeline import estimate
-from uwbfuse.sim.simulator import simulate
+from uwbfuse.sim.simulator import SimResult, simulate_with_truth
 
 SITES = ("room", "factory", "warehouse", "warehouse-nlos")
 GRAPH_METHODS = ("isam2", "batch", "isam2-smoothed")
@@ -111,19 +111,27 @@ def _describe(site: str, o: dict[str, Any]) -> str:
     return " ".join(parts)
 
 
-def _one(seed: int, draw: int, duration_s: float, methods: list[str],
-         config_path: str = "") -> dict[str, Any]:
-    """One draw: its description and each method's 2-D ATE RMSE (m; NaN: the method failed
-    or is not defined for the drawn sensor set)."""
+def simulate_draw(seed: int, draw: int, duration_s: float
+                  ) -> tuple[str, dict[str, Any], dict[str, Any], SimResult]:
+    """Draw `draw` of sweep `seed` simulated (simulator seed `draw`): (site, overrides as
+    used, `[extrinsics]`, the log with its truth). A short route cannot reach every speed:
+    the drawn speed is lowered by a fifth until it can."""
     site, o, extrinsics = _draw(seed, draw, duration_s)
-    while True:  # a short route cannot reach every speed: slow down until it does
+    while True:
         try:
-            log = simulate(site, duration_s, seed=draw, **o)
-            break
+            return site, o, extrinsics, simulate_with_truth(site, duration_s, seed=draw, **o)
         except SimulationError as e:
             if "cruise speed" not in str(e) or o["speed"] < 0.05:
                 raise
             o["speed"] *= 0.8
+
+
+def _one(seed: int, draw: int, duration_s: float, methods: list[str],
+         config_path: str = "") -> dict[str, Any]:
+    """One draw: its description and each method's 2-D ATE RMSE (m; NaN: the method failed
+    or is not defined for the drawn sensor set)."""
+    site, o, extrinsics, sim = simulate_draw(seed, draw, duration_s)
+    log = sim.log
     cfg = load_config(Path(config_path)) if config_path else Config()
     if extrinsics:
         cfg = cfg.model_copy(update={"extrinsics": cfg.extrinsics.model_copy(update=extrinsics)})
