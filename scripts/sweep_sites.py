@@ -28,18 +28,16 @@ import argparse
 import json
 import math
 import sys
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from sim_scenarios import ate_by_method  # scripts/, beside this file
 
 from uwbfuse.config import Config, load_config
-from uwbfuse.errors import SimulationError, UwbfuseError
+from uwbfuse.errors import SimulationError
 from uwbfuse.estimator import Method
-from uwbfuse.eval.evaluate import evaluate
-from uwbfuse.pipeline import estimate
 from uwbfuse.sim.simulator import SimResult, simulate_with_truth
 
 SITES = ("room", "factory", "warehouse", "warehouse-nlos")
@@ -135,18 +133,7 @@ def _one(seed: int, draw: int, duration_s: float, methods: list[str],
     cfg = load_config(Path(config_path)) if config_path else Config()
     if extrinsics:
         cfg = cfg.model_copy(update={"extrinsics": cfg.extrinsics.model_copy(update=extrinsics)})
-    ate: dict[str, float] = {}
-    for m in methods:
-        tic = time.perf_counter()
-        try:
-            res = estimate(log, Method(m), cfg, covariance=False)
-            ate[m] = evaluate(res.trajectory, log.ground_truth, align="none",
-                              max_dt=0.05).ate_2d.rmse
-        except UwbfuseError as e:
-            print(f"# draw {draw} {m}: {e}", file=sys.stderr)
-            ate[m] = float("nan")
-        print(f"# draw {draw} {m}: {ate[m]:.4f} m, {time.perf_counter() - tic:.1f} s",
-              file=sys.stderr, flush=True)
+    ate = ate_by_method(log, methods, cfg, f"draw {draw}")
     return {"draw": draw, "site": site, "describe": _describe(site, o), "ate": ate,
             "overrides": {k: v for k, v in o.items()}}
 

@@ -1,10 +1,14 @@
 # SPDX-License-Identifier: BSD-3-Clause
-"""Shared test helpers: paths to the real datasets (skip when absent), stream cuts."""
+"""Shared test helpers: paths to the real datasets (skip when absent), stream cuts, the
+scripts as modules."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from dataclasses import fields, replace
 from pathlib import Path
+from types import ModuleType
 from typing import TypeVar
 
 import numpy as np
@@ -25,6 +29,22 @@ def real(rel: str) -> Path:
             "(shared/data/real is provided beside the repo in CI)"
         )
     return p
+
+
+def script_module(name: str) -> ModuleType:
+    """The module of `scripts/<name>.py`, loaded once (scripts/ put on sys.path, so the
+    scripts' imports of each other resolve as when they are run)."""
+    key = f"uwbfuse_script_{name}"
+    if key not in sys.modules:
+        scripts = str(ROOT / "scripts")
+        if scripts not in sys.path:
+            sys.path.insert(0, scripts)
+        spec = importlib.util.spec_from_file_location(key, ROOT / "scripts" / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        spec.loader.exec_module(module)
+    return sys.modules[key]
 
 
 def keep_samples(stream: S, keep: np.ndarray) -> S:

@@ -8,27 +8,19 @@ The long run (>= 2000 cases) is documented in docs/results.md.
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers import script_module
+
 CASES = 200  # split over PARTS tests so pytest-xdist runs them side by side
 PARTS = 4
 
 
 def _fuzz_module() -> ModuleType:
-    name = "uwbfuse_fuzz_script"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / "fuzz.py")
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
+    return script_module("fuzz")
 
 
 @pytest.fixture(scope="module")

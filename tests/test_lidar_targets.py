@@ -5,25 +5,17 @@ must be at least 30 % below the UKF with them. Slow: 24 runs."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from tests.helpers import script_module
 from uwbfuse.estimator import Method
 
-ROOT = Path(__file__).resolve().parents[1]
 METHODS = [Method.UKF, Method.EKF, Method.ISAM2, Method.BATCH]
 
 
 def _comparison() -> dict[tuple[Method, bool], list[float]]:
-    spec = importlib.util.spec_from_file_location("lidar_comparison",
-                                                  ROOT / "scripts" / "lidar_comparison.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.compare(3, 90.0, METHODS)
+    return script_module("lidar_comparison").compare(3, 90.0, METHODS)
 
 
 @pytest.mark.slow

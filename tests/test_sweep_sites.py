@@ -3,29 +3,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 
+from tests.helpers import script_module
 from uwbfuse.config import Config
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def sweep() -> ModuleType:
-    name = "uwbfuse_sweep_sites_script"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / "sweep_sites.py")
-        assert spec is not None and spec.loader is not None
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return sys.modules[name]
+    return script_module("sweep_sites")
 
 
 def test_draws_are_reproducible_and_differ(sweep: ModuleType) -> None:
