@@ -187,8 +187,8 @@ def main(argv: list[str] | None = None) -> int:
         x = np.array(ratios[m])
         if len(x):
             print(f"{m}: worse than 1.1x the best baseline on {int(np.sum(x > LOSS_MARGIN))} "
-                  f"of {len(x)} draws; geometric mean ratio {float(np.exp(np.mean(np.log(x)))):.2f}"
-                  f", worst {float(np.max(x)):.2f}")
+                  f"of {len(x)} draws; ratio geometric mean {float(np.exp(np.mean(np.log(x)))):.2f}"
+                  f", median {float(np.median(x)):.2f}, worst {float(np.max(x)):.2f}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump(rows, f, indent=1)
