@@ -679,7 +679,8 @@ def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factor
     gyroscope's white noise at its configured density from one lag (5 s) after the start
     until the first noise fit, and take the fitted inflation for both after it; without
     wheels the gyroscope stays with the rest (docs/results.md, "A wheel slip before the
-    first IMU noise fit")."""
+    first IMU noise fit") and both start at 64x, not 256x: the IMU is then the only motion
+    model (docs/results.md, "The online IMU noise without wheels starts at 64x")."""
     lag = Config().graph.lag
     seen, online = _imu_noise_by_age(factory.log, monkeypatch)
     first = online["fits"][0]["graph_age_s"]
@@ -692,8 +693,12 @@ def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factor
     assert np.allclose([g for g, _ in held], 1.0) and np.allclose([a for _, a in held], 256.0)
     assert np.allclose(after, f)
     monkeypatch.undo()
-    seen, _ = _imu_noise_by_age(_drop(factory.log, "wheel"), monkeypatch)
+    seen, online = _imu_noise_by_age(_drop(factory.log, "wheel"), monkeypatch)
     assert all(g == pytest.approx(a) for _, g, a in seen)
+    first = online["fits"][0]["graph_age_s"]
+    before = [a for t, _, a in seen if t < first]
+    assert before and np.allclose(before, 64.0)
+    assert np.allclose([a for t, _, a in seen if t >= first][:1], online["fits"][0]["inflation"])
 
 
 @pytest.mark.parametrize(("curve", "expected_log2"), [

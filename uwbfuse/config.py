@@ -288,7 +288,8 @@ class GraphConfig(_Section):
         "as they are); auto = estimated from the log: batch and isam2-smoothed's final "
         "smoothing take the factor of greatest Laplace evidence of the whole graph, 1 .. "
         "256 (loosen only), where a likelihood-ratio test rejects 1; the online graph "
-        "starts at 256 and, from 10 s of keyframes on, takes the loosest factor the same "
+        "starts at 256 with wheels (64 without: the IMU is then the only motion model) and, "
+        "from 10 s of keyframes on, takes the loosest factor the same "
         "evidence over its last 30 s does not reject (again each time the graph's age has "
         "doubled); logs without ranges keep the [imu] figures"
     )

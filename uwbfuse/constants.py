@@ -164,6 +164,10 @@ VIRTUAL_BIAS_SIGMA = 1e-3
 # log2 of the largest IMU noise inflation (256): there the default accelerometer density
 # equals the constant-velocity prior's, so an IMU held looser says no more than no IMU
 IMU_INFLATION_MAX_LOG2 = 8.0
+# log2 of the online IMU noise inflation before its first fit where no wheels carry the
+# motion (64): the loosest IMU measured on a real log (ISAS-Walk1's handheld IMU fits
+# 67-73x); the maximum would leave the vehicle without a motion model until the fit
+IMU_INFLATION_START_NO_WHEELS_LOG2 = 6.0
 # m/s^2/sqrt(Hz): the constant-velocity prior's acceleration density before the log tells
 # it (`graph.motion_accel_density = "auto"`): a walker or pushed trolley changes its speed
 # by about 1 m/s within a second

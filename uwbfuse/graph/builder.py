@@ -33,6 +33,7 @@ from uwbfuse.config import Config, GraphConfig
 from uwbfuse.constants import (
     ANCHOR_SIGMA,
     IMU_INFLATION_MAX_LOG2,
+    IMU_INFLATION_START_NO_WHEELS_LOG2,
     LOG_OUTLIER,
     LOS_SIGMA_PRIOR_RANGES,
     MAX_SCALE,
@@ -363,17 +364,22 @@ class GraphBuilder:
         self._planar_noise: gtsam.noiseModel.Diagonal | None = None  # `_planar_prior`'s
         self._init_nlos_state()
         # the IMU noise inflation of the factors built from now on (`set_imu_inflation`).
-        # `auto` with ranges starts as loose as the noise fit may go (a tight IMU factor
-        # at a start still uncertain is ill-conditioned, a loose one costs little while
-        # the ranges hold the track) until the log has shown its noise (`noise_fit`);
-        # without ranges nothing absolute tells the noise: the configured one
+        # `auto` with ranges starts loose until the log has shown its noise (`noise_fit`):
+        # with wheels as loose as the fit may go (a tight IMU factor at a start still
+        # uncertain is ill-conditioned, a loose one costs little while the wheels carry the
+        # motion and the ranges hold the track); without wheels the IMU is the only motion
+        # model, so no looser than the loosest real IMU measured
+        # (IMU_INFLATION_START_NO_WHEELS_LOG2). Without ranges nothing absolute tells the
+        # noise: the configured one
         setting = self.g.imu_noise_inflation
         ranged = "uwb" in streams and len(anchors) > 0
         fit = setting == "auto" and "imu" in streams and ranged
         # without IMU and wheels the factor is on the constant-velocity prior's
         # acceleration density (`motion_prior_params`), fitted alike from 1 (`auto`)
         cv_fit = self.cv_motion and self.g.motion_accel_density == "auto" and ranged
-        self.imu_inflation = (2.0 ** IMU_INFLATION_MAX_LOG2 if fit
+        start_log2 = (IMU_INFLATION_MAX_LOG2 if self.has_wheel
+                      else IMU_INFLATION_START_NO_WHEELS_LOG2)
+        self.imu_inflation = (2.0 ** start_log2 if fit
                               else 1.0 if setting == "auto" or self.cv_motion
                               else float(setting))
         # with wheels, from one lag after the start until the first fit, the gyroscope's
