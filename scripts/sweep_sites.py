@@ -16,10 +16,11 @@ on the default config (or `--config FILE`'s, to compare a setting across the dra
 scored by 2-D ATE RMSE (m, no alignment).
 
 Printed: one row per draw (what was drawn, each method's ATE) with a flag where the graph
-(`isam2`, `batch`) is worse than the best baseline run (`ekf`, `ukf`, `wls`) by more than
-10 %, then per graph method the number of draws it loses and the geometric mean of its
-ratio to the best baseline. A flagged draw is a lead to a defect: re-run it with
-`--only N` (the draws are reproducible from `--seed`).
+(`isam2`, `isam2-smoothed`, `batch`) is worse than the best baseline run (`ekf`, `ukf`,
+`wls`, `lkf`) by more than 10 %, then per graph method the number of draws it loses and
+the geometric mean and median of its ratio to the best baseline (a few outage draws whose
+errors are metres carry the geometric mean: judge a change by both). A flagged draw is a
+lead to a defect: re-run it with `--only N` (the draws are reproducible from `--seed`).
 """
 
 from __future__ import annotations
