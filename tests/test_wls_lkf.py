@@ -116,6 +116,26 @@ def test_wls_yaw_is_the_track_direction() -> None:
     assert np.degrees(np.median(np.abs(ev.yaw_errors[late]))) < 12.0  # measured 6.6 deg
 
 
+def test_wls_base_before_the_first_motion_is_the_tag() -> None:
+    """test that before any motion (no heading) WLS places the base at the tag, not at the
+    tag minus a lever turned by the yaw-0 guess: the error is the lever's length, not up to
+    twice it"""
+    lever = (0.3, 0.0, 0.0)
+    log, _ = make_log(planar_drive((2.0, 1.5), math.pi, 4.0, speed=0.5, turn_rate=0.0), ROOM,
+                      8.0, seed=2, imu=False, wheel=False, lever=lever)
+    cfg = Config(wls={"tag_height": 0.0}, extrinsics={"tag_in_base": lever})
+    res = estimate(log, Method.WLS, cfg)
+    assert log.ground_truth is not None
+    ev = evaluate(res.trajectory, log.ground_truth, align="none", max_dt=0.02)
+    still = ev.t_s - ev.t_s[0] < 3.5
+    err = np.linalg.norm(ev.est_position[still, :2] - ev.gt_position[still, :2], axis=1)
+    # the base faces -x: the yaw-0 guess put it 0.6 m off (twice the lever); the tag is 0.3
+    assert abs(float(np.median(err)) - 0.3) < 0.05
+    late = ev.t_s - ev.t_s[0] > 7.0  # moving: the lever turned by the track's yaw
+    err_late = np.linalg.norm(ev.est_position[late, :2] - ev.gt_position[late, :2], axis=1)
+    assert float(np.median(err_late)) < 0.1
+
+
 def test_kalman_filter_update_and_gating() -> None:
     """test the CV filter: Joseph-form covariance stays symmetric PD; NIS flags a jump"""
     kf = ConstantVelocityKF(2, 0.5)

@@ -15,7 +15,9 @@ nearest anchors.
 Orientation: UWB alone gives no attitude, yet TUM output needs one. The yaw written is the
 track direction: the direction of motion over the last `wls.min_track` metres of fixes
 (held while the tag stands still, 0 before the first motion); roll and pitch are zero. The
-base position is the tag position minus the lever arm `tag_in_base` rotated by that yaw.
+base position is the tag position minus the lever arm `tag_in_base` rotated by that yaw;
+before the first motion, with no heading, minus its vertical part only (the centre of the
+circle of possible base positions).
 
 `calibrate_nlos(log_with_gt, config) -> NlosModel` (re-exported here) fits the per-anchor
 error distributions for the `[nlos]` table.
@@ -347,9 +349,15 @@ class WlsEstimator(EstimatorBase):
             self._est = None
             return
         yaw = self.heading.yaw
-        c, s = math.cos(yaw), math.sin(yaw)
-        lever_map = np.array([c * self.lever[0] - s * self.lever[1],
-                              s * self.lever[0] + c * self.lever[1], self.lever[2]])
+        if self.heading.moving_seen:
+            c, s = math.cos(yaw), math.sin(yaw)
+            lever_map = np.array([c * self.lever[0] - s * self.lever[1],
+                                  s * self.lever[0] + c * self.lever[1], self.lever[2]])
+        else:
+            # no heading yet: the base lies on a circle of the lever's horizontal length
+            # around the tag, and the circle's centre is the guess of least error (|lever|,
+            # where a lever turned by a guessed yaw errs by up to twice that)
+            lever_map = np.array([0.0, 0.0, self.lever[2]])
         self._est = PoseEstimate(int(t_ns), self._tag - lever_map, yaw_quat(yaw), self._cov)
 
     def estimate(self) -> PoseEstimate | None:
