@@ -116,15 +116,16 @@ def test_wls_yaw_is_the_track_direction() -> None:
     assert np.degrees(np.median(np.abs(ev.yaw_errors[late]))) < 12.0  # measured 6.6 deg
 
 
-def test_wls_base_before_the_first_motion_is_the_tag() -> None:
-    """test that before any motion (no heading) WLS places the base at the tag, not at the
-    tag minus a lever turned by the yaw-0 guess: the error is the lever's length, not up to
-    twice it"""
+@pytest.mark.parametrize("method", ["wls", "lkf"])
+def test_base_before_the_first_motion_is_the_tag(method: str) -> None:
+    """test that before any motion (no heading) wls and lkf place the base at the tag, not
+    at the tag minus a lever turned by the yaw-0 guess: the error is the lever's length,
+    not up to twice it"""
     lever = (0.3, 0.0, 0.0)
     log, _ = make_log(planar_drive((2.0, 1.5), math.pi, 4.0, speed=0.5, turn_rate=0.0), ROOM,
                       8.0, seed=2, imu=False, wheel=False, lever=lever)
     cfg = Config(wls={"tag_height": 0.0}, extrinsics={"tag_in_base": lever})
-    res = estimate(log, Method.WLS, cfg)
+    res = estimate(log, Method(method), cfg)
     assert log.ground_truth is not None
     ev = evaluate(res.trajectory, log.ground_truth, align="none", max_dt=0.02)
     still = ev.t_s - ev.t_s[0] < 3.5

@@ -17,7 +17,7 @@ seconds without an accepted fix the velocity is zeroed: through a range outage (
 
 The state is the tag antenna; the pose written is the base: yaw is the track direction of
 the filtered positions over the last `wls.min_track` metres (held while standing), roll
-and pitch zero, the lever arm `tag_in_base` removed.
+and pitch zero, the lever arm `tag_in_base` removed (`TrackHeading.base_position`).
 UWB only: IMU and wheel batches are ignored.
 """
 
@@ -165,12 +165,10 @@ class LkfEstimator(EstimatorBase):
         tag[: self.fixer.dim] = self.kf.position
         if self.fixer.dim == 2:
             tag[2] = self.fixer.tag_z
-        c, s = math.cos(self._yaw), math.sin(self._yaw)
-        lever_map = np.array([c * self.lever[0] - s * self.lever[1],
-                              s * self.lever[0] + c * self.lever[1], self.lever[2]])
         pos_idx = (0, 2, 4) if self.fixer.dim == 3 else (0, 2, None)
         cov = pose_covariance(self.kf.P, (*pos_idx, None, None, None))
-        self._est = PoseEstimate(int(t_ns), tag - lever_map, yaw_quat(self._yaw), cov)
+        self._est = PoseEstimate(int(t_ns), self.heading.base_position(tag, self.lever),
+                                 yaw_quat(self._yaw), cov)
 
     def estimate(self) -> PoseEstimate | None:
         return self._est

@@ -296,6 +296,19 @@ class TrackHeading:
         self.moving_seen = False
         self._hist: deque[tuple[float, np.ndarray]] = deque()
 
+    def base_position(self, tag: np.ndarray, lever: np.ndarray) -> np.ndarray:
+        """The base position (3,) m, map frame, of the tag position `tag` (3,) m, map frame,
+        and the lever arm `lever` (3,) m, base frame, turned by the track yaw. Before the
+        first motion there is no heading: the base lies on a circle of the lever's
+        horizontal length around the tag, and the circle's centre (the tag, less the
+        lever's height) is the guess of least error, |lever| where a lever turned by a
+        guessed yaw errs by up to twice that."""
+        if not self.moving_seen:
+            return tag - np.array([0.0, 0.0, lever[2]])
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        return tag - np.array([c * lever[0] - s * lever[1], s * lever[0] + c * lever[1],
+                               lever[2]])
+
     def update(self, t_s: float, xy: np.ndarray) -> float:
         """Add a position (m, map frame) at t_s; return the current track yaw."""
         self._hist.append((t_s, np.asarray(xy[:2], dtype=np.float64)))
@@ -348,17 +361,8 @@ class WlsEstimator(EstimatorBase):
         if self._tag is None:
             self._est = None
             return
-        yaw = self.heading.yaw
-        if self.heading.moving_seen:
-            c, s = math.cos(yaw), math.sin(yaw)
-            lever_map = np.array([c * self.lever[0] - s * self.lever[1],
-                                  s * self.lever[0] + c * self.lever[1], self.lever[2]])
-        else:
-            # no heading yet: the base lies on a circle of the lever's horizontal length
-            # around the tag, and the circle's centre is the guess of least error (|lever|,
-            # where a lever turned by a guessed yaw errs by up to twice that)
-            lever_map = np.array([0.0, 0.0, self.lever[2]])
-        self._est = PoseEstimate(int(t_ns), self._tag - lever_map, yaw_quat(yaw), self._cov)
+        self._est = PoseEstimate(int(t_ns), self.heading.base_position(self._tag, self.lever),
+                                 yaw_quat(self.heading.yaw), self._cov)
 
     def estimate(self) -> PoseEstimate | None:
         return self._est
