@@ -11,7 +11,8 @@ warehouse, warehouse-nlos) and redraws what differs between real deployments (`_
 speed, UWB rate, LOS noise, NLOS excess (size, spread, law), outliers and dropouts, constant
 anchor offsets, wheel scale and slip, IMU grade, the sensor set (IMU / wheels / UWB
 subsets), the standstill at the start, a UWB outage, a tag lever arm and a rotated IMU (the
-last two given to the estimator in `[extrinsics]`, as a user would). Every method then runs
+last two given to the estimator in `[extrinsics]`, as a user would), and the map frame's
+turn against the route (`turned_map`: the named routes all start facing +x). Every method then runs
 on the default config (or `--config FILE`'s, to compare a setting across the draws) and is
 scored by 2-D ATE RMSE (m, no alignment).
 
@@ -30,16 +31,19 @@ import json
 import math
 import sys
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from sim_scenarios import ate_by_method  # scripts/, beside this file
 
 from uwbfuse.config import Config, load_config
 from uwbfuse.errors import SimulationError
 from uwbfuse.estimator import Method
 from uwbfuse.sim.simulator import SimResult, simulate_with_truth
+from uwbfuse.streams import PoseStream
 
 SITES = ("room", "factory", "warehouse", "warehouse-nlos")
 GRAPH_METHODS = ("isam2", "batch", "isam2-smoothed")
@@ -90,6 +94,9 @@ def _draw(seed: int, draw: int, duration_s: float) -> tuple[str, dict[str, Any],
         yaw = float(rng.choice([0.5, 1.0, -0.5])) * math.pi
         imu = (0.1, 0.0, 0.2, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
         o["imu_in_base"] = extrinsics["imu_in_base"] = imu
+    # rad: the map frame turned about z (`turned_map`): every named route starts facing +x,
+    # a real site's map has no such relation to where the vehicle starts
+    o["map_yaw"] = float(rng.uniform(-math.pi, math.pi))
     return site, o, extrinsics
 
 
@@ -107,6 +114,8 @@ def _describe(site: str, o: dict[str, Any]) -> str:
     if "imu_in_base" in o:
         parts.append("imu-turned")
     parts.append(f"still{o['still_start_s']:.0f}s")
+    if "map_yaw" in o:
+        parts.append(f"map{math.degrees(o['map_yaw']):+.0f}deg")
     return " ".join(parts)
 
 
@@ -116,13 +125,50 @@ def simulate_draw(seed: int, draw: int, duration_s: float
     used, `[extrinsics]`, the log with its truth). A short route cannot reach every speed:
     the drawn speed is lowered by a fifth until it can."""
     site, o, extrinsics = _draw(seed, draw, duration_s)
+    sim_o = {k: v for k, v in o.items() if k != "map_yaw"}
     while True:
         try:
-            return site, o, extrinsics, simulate_with_truth(site, duration_s, seed=draw, **o)
+            sim = simulate_with_truth(site, duration_s, seed=draw, **sim_o)
+            return site, o, extrinsics, turned_map(sim, o["map_yaw"])
         except SimulationError as e:
-            if "cruise speed" not in str(e) or o["speed"] < 0.05:
+            if "cruise speed" not in str(e) or sim_o["speed"] < 0.05:
                 raise
-            o["speed"] *= 0.8
+            o["speed"] = sim_o["speed"] = sim_o["speed"] * 0.8
+
+
+def turned_map(sim: SimResult, yaw: float) -> SimResult:
+    """`sim` with its map frame turned by `yaw` (rad) about z: the anchors, the ground
+    truth, the localiser's poses (and their covariances), the electronic map and the true
+    velocity and yaw in the turned frame; the body-frame streams (IMU, wheels) and the
+    ranges are unchanged."""
+    rot = Rotation.from_euler("z", yaw)
+    r_mat = rot.as_matrix()
+    log = sim.log
+
+    def poses(p: PoseStream | None) -> PoseStream | None:
+        if p is None:
+            return None
+        cov = p.covariance
+        if cov is not None:
+            r6 = np.zeros((6, 6))
+            r6[:3, :3] = r6[3:, 3:] = r_mat
+            cov = r6 @ cov @ r6.T
+        return replace(p, position=rot.apply(p.position),
+                       quat_xyzw=(rot * Rotation.from_quat(p.quat_xyzw)).as_quat(),
+                       covariance=cov)
+
+    def points(ring: list[Any]) -> list[tuple[float, float]]:
+        return [tuple(float(c) for c in r_mat[:2, :2] @ np.asarray(q, float)) for q in ring]
+
+    site_map = log.map
+    if site_map is not None:
+        site_map = site_map.model_copy(update={
+            "obstacles": [points(poly) for poly in site_map.obstacles],
+            "walls": [points(line) for line in site_map.walls],
+            "boundary": points(site_map.boundary)})
+    turned = replace(log, anchors=replace(log.anchors, positions=rot.apply(log.anchors.positions)),
+                     ground_truth=poses(log.ground_truth), pose=poses(log.pose), map=site_map)
+    return replace(sim, log=turned, velocity=rot.apply(sim.velocity), yaw=sim.yaw + yaw)
 
 
 def _one(seed: int, draw: int, duration_s: float, methods: list[str],

@@ -45,3 +45,35 @@ def test_a_draw_runs_end_to_end(sweep: ModuleType) -> None:
     assert row["draw"] == draw and math.isfinite(row["ate"]["ekf"]) and row["ate"]["ekf"] < 5.0
     assert sweep._best_baseline({"isam2": 0.01, "ekf": 0.2, "wls": 0.3}) == 0.2
     assert math.isnan(sweep._best_baseline({"isam2": 0.01}))
+
+
+def test_turned_map_keeps_every_distance_and_turns_every_map_quantity(
+        sweep: ModuleType) -> None:
+    """test that turning the map frame moves the anchors, the truth, the localiser's poses
+    and the electronic map together (every tag-anchor distance, so every range, holds) and
+    turns the headings by the angle"""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    sim = simulate_with_truth("warehouse-lidar", 6.0, seed=1)
+    turned = sweep.turned_map(sim, 0.7)
+    a, b = sim.log, turned.log
+    assert b.pose is not None and a.pose is not None and a.map is not None and b.map is not None
+
+    def dist(log: object, p: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(p[:, None, :] - log.anchors.positions[None], axis=2)
+
+    assert np.allclose(dist(a, a.ground_truth.position), dist(b, b.ground_truth.position))
+    assert np.allclose(dist(a, a.pose.position), dist(b, b.pose.position))
+    yaw = lambda q: Rotation.from_quat(q).as_euler("ZYX")[:, 0]  # noqa: E731
+    d_yaw = np.angle(np.exp(1j * (yaw(b.ground_truth.quat_xyzw) - yaw(a.ground_truth.quat_xyzw))))
+    assert np.allclose(d_yaw, 0.7)
+    assert np.allclose(np.trace(b.pose.covariance, axis1=1, axis2=2),
+                       np.trace(a.pose.covariance, axis1=1, axis2=2))
+    p0, p1 = np.asarray(a.map.obstacles[0]), np.asarray(b.map.obstacles[0])
+    assert np.allclose(np.linalg.norm(p1, axis=1), np.linalg.norm(p0, axis=1))
+    assert not np.allclose(p1, p0)
+    assert np.allclose(turned.yaw - sim.yaw, 0.7)
+    assert np.array_equal(b.ranges.range, a.ranges.range) and b.imu is a.imu
