@@ -140,7 +140,7 @@ def turned_map(sim: SimResult, yaw: float) -> SimResult:
     """`sim` with its map frame turned by `yaw` (rad) about z: the anchors, the ground
     truth, the localiser's poses (and their covariances), the electronic map and the true
     velocity and yaw in the turned frame; the body-frame streams (IMU, wheels) and the
-    ranges are unchanged."""
+    ranges are unchanged. `sim.scenario` keeps the route's own frame."""
     rot = Rotation.from_euler("z", yaw)
     r_mat = rot.as_matrix()
     log = sim.log
