@@ -265,3 +265,23 @@ def test_db3_rows_without_a_number_stamp_or_a_blob_payload_are_counted_skips(
     assert any(f"{len(bad)} messages on /imu skipped" in w for w in got.report.warnings)
     assert len(got.ranges) == len(sim.ranges) and len(got.wheel) == len(sim.wheel)
 
+
+
+@pytest.mark.parametrize("qos", ["x: 1", "- 5", "abc", "- history: [1]"])
+def test_db3_offered_qos_not_a_list_of_mappings_is_one_line(
+    tmp_path: Path, sim: SensorLog, qos: str
+) -> None:
+    """test a db3 whose topics' offered_qos_profiles YAML is not a list of QoS mappings
+    (rosbags' parse_qos raised TypeError / AttributeError: a traceback): one line naming
+    the file and the column."""
+    import sqlite3
+
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "sqlite3", "")
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("UPDATE topics SET offered_qos_profiles = ?", (qos,))
+    with pytest.raises(LogReadError) as e:
+        read_log(bag, _anchor_config(sim))
+    assert "\n" not in str(e.value) and str(db3) in str(e.value)
+    assert "offered_qos_profiles" in str(e.value)

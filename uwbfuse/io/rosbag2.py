@@ -329,7 +329,12 @@ class _SqliteScan:
         from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
         storage = Sqlite3Reader(path)
-        storage.open()
+        try:
+            storage.open()
+        except (TypeError, AttributeError) as e:  # rosbags' parse_qos on a QoS YAML that is
+            # not a list of mappings; `scan` makes it one line naming the file
+            raise ValueError("its topics' offered_qos_profiles is not a list of QoS "
+                             f"mappings ({type(e).__name__}: {e})") from None
         try:
             ids = {conn.id: self._channel(conn) for conn in storage.connections}
             wanted = [c for c in storage.connections if ids[c.id] in self.sinks]
