@@ -375,3 +375,32 @@ def test_power_change_and_first_path_excess() -> None:
     fpx = x[:, names.index("fp_excess_db")]
     assert np.median(fpx[s.nlos]) < np.median(fpx[~s.nlos]) - 3.0
 
+
+
+@pytest.mark.parametrize(("key", "value"), [
+    ("label_threshold_m", "abc"), ("label_threshold_m", [1, 2]),
+    ("label_threshold_m", float("nan")), ("label_threshold_m", -0.1),
+    ("info", {"nlos_share": "abc"}), ("info", {"nlos_share": [1]}),
+    ("info", {"nlos_share": float("nan")}), ("info", {"nlos_share": 2.0}),
+])
+def test_model_with_a_bad_threshold_or_nlos_share_is_one_line(
+    tmp_path: Path, key: str, value: object, capsys: pytest.CaptureFixture
+) -> None:
+    """test that a model file whose label threshold is not a positive number or whose
+    training NLOS share is not a number in [0, 1] is a one-line error naming the key, exit 2
+    (float() raised ValueError / TypeError tracebacks at load or in the run, and a NaN share
+    made NaN priors)."""
+    p = _skops_dict(tmp_path / "m.skops", **{key: value})
+    name = "nlos_share" if key == "info" else key
+    with pytest.raises(ConfigError, match=name):
+        load_classifier(p)
+    log = tmp_path / "s.mcap"
+    write_contract_log(log, simulate("room", 6.0, seed=1))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[nlos]\nclassifier = "{p}"\n')
+    capsys.readouterr()
+    assert main(["run", str(log), "--method", "ekf", "--config", str(cfg),
+                 "-o", str(tmp_path / "e.tum")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(p) in err[0] and name in err[0], err
+    assert not (tmp_path / "e.tum").exists()

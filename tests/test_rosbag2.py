@@ -211,3 +211,77 @@ def test_db3_without_message_definitions_uses_the_type_store(
     ref = tmp_path / "ref.mcap"
     write_contract_log(ref, sim)
     assert_same_log(read_log(bag, cfg), read_log(ref, cfg))
+
+
+def _relax_not_null(db: Any, table: str) -> None:
+    """Rebuild `table` of an sqlite3 connection without its NOT NULL constraints (a db3
+    written by another tool, or damaged, may hold NULLs rosbags' schema forbids)."""
+    (sql,) = db.execute("SELECT sql FROM sqlite_master WHERE type = 'table' AND name = ?",
+                        (table,)).fetchone()
+    db.execute(f"ALTER TABLE {table} RENAME TO old_{table}")
+    db.execute(sql.replace("NOT NULL", ""))
+    db.execute(f"INSERT INTO {table} SELECT * FROM old_{table}")
+    db.execute(f"DROP TABLE old_{table}")
+
+
+@pytest.mark.parametrize("mode", ["", "message"])
+def test_db3_rows_without_a_number_stamp_or_a_blob_payload_are_counted_skips(
+    tmp_path: Path, sim: SensorLog, mode: str
+) -> None:
+    """test db3 message rows whose timestamp is NULL, text or beyond int64 (a REAL 1e300) or
+    whose data is NULL, text or an integer (sqlite's columns are dynamically typed): each
+    skipped and counted in a warning, the rest read (they raised TypeError / OverflowError
+    tracebacks)."""
+    import sqlite3
+
+    cfg = _anchor_config(sim)
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "sqlite3", "")
+    (db3,) = bag.glob("*.db3")
+    if mode:  # every payload zstd-compressed, as a message-compressed bag holds them
+        import zstandard
+
+        z = zstandard.ZstdCompressor()
+        with sqlite3.connect(db3) as db:
+            rows = db.execute("SELECT id, data FROM messages").fetchall()
+            db.executemany("UPDATE messages SET data = ? WHERE id = ?",
+                           [(z.compress(d), i) for i, d in rows])
+        meta = bag / "metadata.yaml"
+        text = meta.read_text().replace("compression_mode: ''", "compression_mode: message")
+        meta.write_text(text.replace("compression_format: ''", "compression_format: zstd"))
+    with sqlite3.connect(db3) as db:
+        _relax_not_null(db, "messages")
+        (imu_id,) = db.execute("SELECT id FROM topics WHERE name = '/imu'").fetchone()
+        ids = [i for (i,) in db.execute(
+            "SELECT id FROM messages WHERE topic_id = ? ORDER BY timestamp, id LIMIT 40",
+            (imu_id,))]
+        bad = {ids[3]: ("timestamp", None), ids[5]: ("timestamp", "abc"),
+               ids[7]: ("timestamp", 1e300), ids[9]: ("data", None),
+               ids[11]: ("data", "hello"), ids[13]: ("data", 7)}
+        for i, (col, value) in bad.items():
+            db.execute(f"UPDATE messages SET {col} = ? WHERE id = ?", (value, i))
+    got = read_log(bag, cfg)
+    assert len(got.imu) == len(sim.imu) - len(bad)
+    assert any(f"{len(bad)} messages on /imu skipped" in w for w in got.report.warnings)
+    assert len(got.ranges) == len(sim.ranges) and len(got.wheel) == len(sim.wheel)
+
+
+
+@pytest.mark.parametrize("qos", ["x: 1", "- 5", "abc", "- history: [1]"])
+def test_db3_offered_qos_not_a_list_of_mappings_is_one_line(
+    tmp_path: Path, sim: SensorLog, qos: str
+) -> None:
+    """test a db3 whose topics' offered_qos_profiles YAML is not a list of QoS mappings
+    (rosbags' parse_qos raised TypeError / AttributeError: a traceback): one line naming
+    the file and the column."""
+    import sqlite3
+
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "sqlite3", "")
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        db.execute("UPDATE topics SET offered_qos_profiles = ?", (qos,))
+    with pytest.raises(LogReadError) as e:
+        read_log(bag, _anchor_config(sim))
+    assert "\n" not in str(e.value) and str(db3) in str(e.value)
+    assert "offered_qos_profiles" in str(e.value)

@@ -275,6 +275,16 @@ def _plain_file(f: Path, bag: Bag) -> Iterator[Path]:
         yield plain
 
 
+def _row_stamp(t: object) -> int | None:
+    """An sqlite3 row's timestamp (ns) as an int; None unless an integer or a finite real
+    within int64 (sqlite keeps what a column is given: NULL, text, blob, 1e300)."""
+    if isinstance(t, int):
+        return t
+    if isinstance(t, float) and -(2.0**63) <= t < 2.0**63:
+        return int(t)
+    return None
+
+
 class _SqliteScan:
     """The messages of sqlite3 storage files, through `rosbags`' Sqlite3Reader."""
 
@@ -288,6 +298,7 @@ class _SqliteScan:
         self.ids: dict[tuple[str, str], int] = {}  # (topic, type) -> channel id over files
         self.sinks: dict[int, Sink] = {}
         self.failed: dict[str, int] = {}
+        self.bad_rows: dict[str, int] = {}  # topic -> rows without a stamp or a payload
 
     def _channel(self, conn: Any) -> int:
         key = (conn.topic, conn.msgtype)
@@ -318,7 +329,12 @@ class _SqliteScan:
         from rosbags.rosbag2.storage_sqlite3 import Sqlite3Reader
 
         storage = Sqlite3Reader(path)
-        storage.open()
+        try:
+            storage.open()
+        except (TypeError, AttributeError) as e:  # rosbags' parse_qos on a QoS YAML that is
+            # not a list of mappings; `scan` makes it one line naming the file
+            raise ValueError("its topics' offered_qos_profiles is not a list of QoS "
+                             f"mappings ({type(e).__name__}: {e})") from None
         try:
             ids = {conn.id: self._channel(conn) for conn in storage.connections}
             wanted = [c for c in storage.connections if ids[c.id] in self.sinks]
@@ -327,6 +343,11 @@ class _SqliteScan:
                     self.result.channels[ids[conn.id]].count += int(conn.msgcount)
             pending: dict[int, tuple[list[int], list[bytes]]] = {}
             for conn, t, data in storage.messages(wanted) if wanted else ():
+                if type(t) is not int or type(data) is not bytes:  # sqlite's dynamic types
+                    t = _row_stamp(t) if isinstance(data, bytes) else None
+                    if t is None:
+                        self.bad_rows[conn.topic] = self.bad_rows.get(conn.topic, 0) + 1
+                        continue
                 times, datas = pending.setdefault(ids[conn.id], ([], []))
                 times.append(t)
                 datas.append(data)
@@ -352,6 +373,9 @@ class _SqliteScan:
         for topic, n in self.failed.items():
             self.result.warnings.append(f"{n} messages on {topic} skipped: their zstd "
                                         "message compression does not decompress")
+        for topic, n in self.bad_rows.items():
+            self.result.warnings.append(f"{n} messages on {topic} skipped: their sqlite3 "
+                                        "row has no integer timestamp or no blob data")
         self.result.complete = True
         return self.result
 

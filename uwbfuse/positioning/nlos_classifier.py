@@ -366,8 +366,19 @@ def load_classifier(path: str | Path) -> NlosClassifier:
             or getattr(forest, "n_features_in_", None) != len(feats)):
         raise ConfigError(f"{what}: the model's forest does not match its feature list")
     thr = obj.get("label_threshold_m", LABEL_THRESHOLD_M)
+    if not _real(thr) or not thr > 0:
+        raise ConfigError(f"{what}: label_threshold_m is {_short(thr)}, not a positive number")
     info = obj.get("info") if isinstance(obj.get("info"), dict) else {}
+    share = info.get("nlos_share", 0.5)
+    if not _real(share) or not 0.0 <= share <= 1.0:
+        raise ConfigError(f"{what}: info nlos_share is {_short(share)}, not a number in [0, 1]")
     return NlosClassifier(tuple(feats), forest, float(thr), info)
+
+
+def _real(v: object) -> bool:
+    """A finite real number of a model file (an int or a float, not a bool)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
+        v, (bool, np.bool_)) and math.isfinite(v)
 
 
 def _short(v: object) -> str:
