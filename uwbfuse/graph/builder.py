@@ -218,10 +218,11 @@ class RecentMotion:
     imu: imu_mod.ImuRecords = field(default_factory=imu_mod.ImuRecords)
 
     def add(self, ka: int, factors: list[gtsam.NonlinearFactor],
-            bias: gtsam.imuBias.ConstantBias, pieces: tuple[np.ndarray, np.ndarray, np.ndarray]
-            ) -> None:
-        """Keyframe interval `ka` -> `ka` + 1: its motion factors, the bias and pieces of
-        its IMU factor (`factors[0]`); the oldest interval beyond `keep` leaves."""
+            bias: gtsam.imuBias.ConstantBias,
+            pieces: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]) -> None:
+        """Keyframe interval `ka` -> `ka` + 1: its motion factors, the bias, pieces and
+        dropout covariance of its IMU factor (`factors[0]`; `ImuRecords.add`); the oldest
+        interval beyond `keep` leaves."""
         self.ka.append(ka)
         self.factors.append(factors)
         self.ranges.append((np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 3))))
@@ -747,6 +748,22 @@ class GraphBuilder:
             return out
         return [gtsam.Pose3() for _ in range(len(t_b))]
 
+    def _guess_covariance(self, t_a: int, t_b: int, bias: gtsam.imuBias.ConstantBias,
+                          pieces: tuple[np.ndarray, np.ndarray, np.ndarray]
+                          ) -> np.ndarray | None:
+        """What an IMU dropout's guess inside [t_a, t_b] adds to the keyframe's IMU factor
+        (`imu.guess_covariance`): the motion unseen, at the constant-velocity prior's
+        densities (MOTION_ACCEL_DENSITY_START, `graph.motion_turn_density`); None without a
+        dropout or for the constant-velocity prior's own virtual IMU."""
+        if self.cv_motion or self.pim_params is None:
+            return None
+        guess_s = self.imu.guess_s(t_a, t_b)
+        if guess_s <= 0.0:
+            return None
+        return imu_mod.guess_covariance(self.pim_params, bias, pieces, guess_s,
+                                        self.motion_accel_density(1.0),
+                                        self.g.motion_turn_density)
+
     def _rest(self, pose: gtsam.Pose3, bias: gtsam.imuBias.ConstantBias
               ) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
         """What the IMU reads through a dropout from `pose`, `bias` (`ImuBuffer.pieces`)."""
@@ -983,12 +1000,17 @@ class GraphBuilder:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)
             pim = imu_mod.preintegrate(self.pim_params, bias_a, gy, ac, dts)
+            guess = self._guess_covariance(t_a, t_b, bias_a, (gy, ac, dts))
             if self.record and self.full_graph is not None:
                 self.imu_records.add(ka, self.full_graph.size() + inc.graph.size(), bias_a,
-                                     gy, ac, dts)  # pushed by `_record` below
-            motion.append(gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim))
+                                     gy, ac, dts, guess)  # pushed by `_record` below
+            factor = gtsam.CombinedImuFactor(X(ka), V(ka), X(k), V(k), B(ka), B(k), pim)
+            if guess is not None:
+                factor = factor.cloneWithNewNoiseModel(gtsam.noiseModel.Gaussian.Covariance(
+                    np.asarray(pim.preintMeasCov()) + guess))
+            motion.append(factor)
             inc.graph.add(motion[-1])
-            pieces = (gy, ac, dts)
+            pieces = (gy, ac, dts, guess)
             pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
             new_pose, new_vel = pred.pose(), pred.velocity()
             inc.values.insert(V(k), new_vel)

@@ -87,6 +87,34 @@ def rest_reading(params: gtsam.PreintegrationCombinedParams, attitude: gtsam.Rot
             np.asarray(f_imu, np.float64) + np.asarray(bias.accelerometer(), np.float64))
 
 
+def guess_covariance(
+    params: gtsam.PreintegrationCombinedParams, bias: gtsam.imuBias.ConstantBias,
+    pieces: tuple[np.ndarray, np.ndarray, np.ndarray], guess_s: float,
+    accel_density: float, turn_density: float,
+) -> np.ndarray:
+    """(15,15) covariance the dropout's guess adds to an IMU factor whose `pieces` hold the
+    rest reading for `guess_s` seconds (`ImuBuffer.pieces`): the motion the guess cannot
+    see, as the constant-velocity prior's white-noise acceleration `accel_density`
+    (m/s^2/sqrt(Hz)) and yaw rate `turn_density` (rad/s/sqrt(Hz), about the base's
+    vertical; the guess's level attitude is the IMU's own), spread over the factor's pieces
+    at the guess's share of its time. `params`: the factor's preintegration parameters
+    (their body_P_sensor)."""
+    gy, ac, dt = pieces
+    share = min(guess_s / max(float(np.sum(dt)), 1e-9), 1.0)
+    g = gtsam.PreintegrationCombinedParams(params.n_gravity)
+    body_p_imu = params.getBodyPSensor()
+    r_bs = (body_p_imu.rotation().matrix() if body_p_imu is not None else np.eye(3))
+    up = r_bs.T @ np.array([0.0, 0.0, 1.0])  # the base's vertical in the IMU frame
+    g.setAccelerometerCovariance(np.eye(3) * accel_density**2 * share)
+    g.setGyroscopeCovariance(np.outer(up, up) * turn_density**2 * share)
+    g.setIntegrationCovariance(np.zeros((3, 3)))
+    g.setBiasAccCovariance(np.zeros((3, 3)))
+    g.setBiasOmegaCovariance(np.zeros((3, 3)))
+    if body_p_imu is not None:
+        g.setBodyPSensor(body_p_imu)
+    return np.asarray(preintegrate(g, bias, gy, ac, dt).preintMeasCov(), np.float64)
+
+
 def bias_prior_sigmas(cfg: ImuConfig) -> np.ndarray:
     """Sigmas of an IMU-bias prior: accelerometer (m/s^2) then gyroscope (rad/s)."""
     return np.array([cfg.accel_bias_sigma] * 3 + [cfg.gyro_bias_sigma] * 3)
@@ -150,24 +178,12 @@ class ImuBuffer:
         would read with no turn and no acceleration, `rest_reading`; called only then)
         instead of the sample's instantaneous turn rate and acceleration, which held for
         seconds spin the attitude and run away."""
-        self._flush()
-        t = self._t
-        if len(t) == 0 or t1 <= t0:
+        cover = self._cover(t0, t1)
+        if cover is None:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
-        i1 = int(np.searchsorted(t, t1, side="left"))
-        idx = slice(i0, max(i1, i0 + 1))  # the samples covering [t0, t1] (views)
-        ts = t[idx]
-        starts = np.maximum(ts, t0)
-        ends = np.empty_like(starts)
-        ends[:-1] = ts[1:]
-        ends[-1] = t1
-        ends = np.minimum(ends, t1)
+        idx, _ts, starts, ends, held, cut = cover
         gyro, acc = self._gyro[idx], self._acc[idx]
-        hold_ns = round(MAX_EXTRAPOLATION_S * NS_PER_S)
-        held = ends - ts > hold_ns
         if held.any():  # a dropout: split each long hold into the sample, then the guess
-            cut = np.maximum(np.minimum(ts + hold_ns, ends), starts)
             starts = np.concatenate([starts, cut[held]])
             ends = np.concatenate([np.where(held, cut, ends), ends[held]])
             n = int(np.sum(held))
@@ -179,6 +195,37 @@ class ImuBuffer:
         dt = (ends - starts).astype(np.float64) / NS_PER_S
         keep = dt > 0
         return gyro[keep], acc[keep], dt[keep]
+
+    def _cover(self, t0: int, t1: int) -> tuple[slice, np.ndarray, np.ndarray, np.ndarray,
+                                                 np.ndarray, np.ndarray] | None:
+        """The samples covering [t0, t1] (a slice), their stamps, the start and end (ns) of
+        each one's hold inside [t0, t1], which holds run past MAX_EXTRAPOLATION_S (a
+        dropout) and where each such hold turns into the guess; None without samples."""
+        self._flush()
+        t = self._t
+        if len(t) == 0 or t1 <= t0:
+            return None
+        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(t, t1, side="left"))
+        idx = slice(i0, max(i1, i0 + 1))  # the samples covering [t0, t1] (views)
+        ts = t[idx]
+        starts = np.maximum(ts, t0)
+        ends = np.empty_like(starts)
+        ends[:-1] = ts[1:]
+        ends[-1] = t1
+        ends = np.minimum(ends, t1)
+        hold_ns = round(MAX_EXTRAPOLATION_S * NS_PER_S)
+        held = ends - ts > hold_ns
+        cut = np.maximum(np.minimum(ts + hold_ns, ends), starts)
+        return idx, ts, starts, ends, held, cut
+
+    def guess_s(self, t0: int, t1: int) -> float:
+        """Seconds of [t0, t1] that `pieces` fills with the dropout's guess (0: none)."""
+        cover = self._cover(t0, t1)
+        if cover is None:
+            return 0.0
+        _idx, _ts, _starts, ends, held, cut = cover
+        return float(np.sum(ends[held] - cut[held])) / NS_PER_S
 
     def rotation_between(self, t0: int, t1: int, gyro_bias: np.ndarray,
                          body_r_imu: np.ndarray) -> np.ndarray:
@@ -250,45 +297,50 @@ class ImuRecords:
     # IMU's: the constant-velocity prior's virtual IMU (`GraphBuilder`); None: the
     # configured IMU's (`preintegration_params`)
     params_at: Callable[[float], gtsam.PreintegrationCombinedParams] | None = None
+    # the covariance (15,15) an IMU dropout's guess adds to each factor (`guess_covariance`;
+    # None: a factor of measured samples), at every inflation
+    guess: list[np.ndarray | None] = field(default_factory=list)
 
     def add(self, k: int, index: int, bias: gtsam.imuBias.ConstantBias, gyro: np.ndarray,
-            accel: np.ndarray, dt: np.ndarray) -> None:
+            accel: np.ndarray, dt: np.ndarray, guess: np.ndarray | None = None) -> None:
         self.k.append(k)
         self.index.append(index)
         self.bias.append(bias)
         self.pieces.append((gyro, accel, dt))
+        self.guess.append(guess)
 
     def drop_before(self, k: int) -> None:
         """Forget the factors whose first keyframe is before `k`."""
         n = bisect.bisect_left(self.k, k)  # `k` is ascending (np.searchsorted's left side)
         for kk in self.k[:n]:
             self.parts.pop(kk, None)
-        del self.k[:n], self.index[:n], self.bias[:n], self.pieces[:n]
+        del self.k[:n], self.index[:n], self.bias[:n], self.pieces[:n], self.guess[:n]
 
     def reindexed(self, index: list[int]) -> ImuRecords:
         """The same factors at other indices (of another graph), sharing `parts`."""
         return ImuRecords(list(self.k), list(index), list(self.bias), list(self.pieces),
-                          self.parts, self.params_at)
+                          self.parts, self.params_at, list(self.guess))
 
     def selected(self, sel: list[int]) -> ImuRecords:
         """The factors at positions `sel` of these records (sharing `parts`)."""
         return ImuRecords([self.k[i] for i in sel], [self.index[i] for i in sel],
                           [self.bias[i] for i in sel], [self.pieces[i] for i in sel],
-                          self.parts, self.params_at)
+                          self.parts, self.params_at, [self.guess[i] for i in sel])
 
     def covariance_parts(self, cfg: ImuConfig, ext: Extrinsics) -> tuple[np.ndarray, np.ndarray]:
         """(N, I), each (n,15,15): the preintegrated covariance of every factor per unit
-        f^2 of the configured noise, and that of the integration covariance alone (two
-        preintegrations of each factor, at f = 1 and 2, once)."""
+        f^2 of the configured noise, and that of the integration covariance alone plus a
+        dropout's guess (`guess`; two preintegrations of each factor, at f = 1 and 2, once)."""
         if self.params_at is not None:
             one, two = self.params_at(1.0), self.params_at(2.0)
         else:
             one, two = preintegration_params(cfg, ext, 1.0), preintegration_params(cfg, ext, 2.0)
-        for k, b, (gy, ac, dt) in zip(self.k, self.bias, self.pieces, strict=True):
+        for k, b, (gy, ac, dt), g in zip(self.k, self.bias, self.pieces, self.guess,
+                                         strict=True):
             if k not in self.parts:
                 c1 = preintegrate(one, b, gy, ac, dt).preintMeasCov()
                 n = (preintegrate(two, b, gy, ac, dt).preintMeasCov() - c1) / 3.0
-                self.parts[k] = (n, c1 - n)
+                self.parts[k] = (n, c1 - n if g is None else c1 - n + g)
         if not self.k:
             return np.zeros((0, 15, 15)), np.zeros((0, 15, 15))
         return (np.array([self.parts[k][0] for k in self.k]),
