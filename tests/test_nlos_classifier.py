@@ -281,15 +281,22 @@ def test_model_loading_safety(tmp_path: Path, kind: str,
         _skops_dict(p, features=list(RESIDUAL_FEATURES[:3]))
     with pytest.raises(ConfigError):
         load_classifier(p)
+    _run_refuses_the_model(tmp_path, p, "wls", capsys)
+
+
+def _run_refuses_the_model(tmp_path: Path, model: Path, method: str,
+                           capsys: pytest.CaptureFixture, key: str = "") -> None:
+    """`uwbfuse run` with `[nlos] classifier = model` exits 2 with one line naming the
+    file (and `key`) and writes no output."""
     log = tmp_path / "s.mcap"
     write_contract_log(log, simulate("room", 6.0, seed=1))
     cfg = tmp_path / "c.toml"
-    cfg.write_text(f'[nlos]\nclassifier = "{p}"\n')
+    cfg.write_text(f'[nlos]\nclassifier = "{model}"\n')
     capsys.readouterr()
-    assert main(["run", str(log), "--method", "wls", "--config", str(cfg),
+    assert main(["run", str(log), "--method", method, "--config", str(cfg),
                  "-o", str(tmp_path / "e.tum")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(p) in err[0], err
+    assert len(err) == 1 and str(model) in err[0] and key in err[0], err
     assert not (tmp_path / "e.tum").exists()
 
 
@@ -394,13 +401,4 @@ def test_model_with_a_bad_threshold_or_nlos_share_is_one_line(
     name = "nlos_share" if key == "info" else key
     with pytest.raises(ConfigError, match=name):
         load_classifier(p)
-    log = tmp_path / "s.mcap"
-    write_contract_log(log, simulate("room", 6.0, seed=1))
-    cfg = tmp_path / "c.toml"
-    cfg.write_text(f'[nlos]\nclassifier = "{p}"\n')
-    capsys.readouterr()
-    assert main(["run", str(log), "--method", "ekf", "--config", str(cfg),
-                 "-o", str(tmp_path / "e.tum")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and str(p) in err[0] and name in err[0], err
-    assert not (tmp_path / "e.tum").exists()
+    _run_refuses_the_model(tmp_path, p, "ekf", capsys, name)
