@@ -223,10 +223,18 @@ def test_extrinsics_tag_lever_arm_and_imu_mounting(method: Method) -> None:
     cfg = Config()
     cfg.extrinsics.tag_in_base = ext["tag_in_base"]
     cfg.extrinsics.imu_in_base = ext["imu_in_base"]
-    ev = evaluate(estimate(log, method, cfg).trajectory, log.ground_truth, max_dt=0.01)
-    # Measured: 0.014 m 2-D ATE RMSE (0.23 m when the config omits the extrinsics).
-    assert ev.ate_2d.rmse < 0.05
-    assert ev.ate_3d.rmse < 0.05
+    res = estimate(log, method, cfg)
+    ev = evaluate(res.trajectory, log.ground_truth, max_dt=0.01)
+    # the filter's own epochs: before its start (the 2 s standstill) the pose is the
+    # fallback's tag fix, the lever's direction unknown (the lever's length off)
+    own = ev.t_ns >= res.report["initialised_at_ns"]
+    assert np.count_nonzero(own) > 0.85 * len(own)  # measured 0.92
+    e2 = np.linalg.norm(ev.est_position[own, :2] - ev.gt_position[own, :2], axis=1)
+    e3 = np.linalg.norm(ev.est_position[own] - ev.gt_position[own], axis=1)
+    # Measured: 0.017 m 2-D and 3-D RMSE on its own epochs (0.23 m 2-D ATE when the config
+    # omits the extrinsics).
+    assert np.sqrt(np.mean(e2**2)) < 0.05
+    assert np.sqrt(np.mean(e3**2)) < 0.05
 
 
 def test_a_gross_range_at_the_start_does_not_pass_as_a_range_scale() -> None:
