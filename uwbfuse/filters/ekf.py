@@ -252,10 +252,12 @@ class ErrorStateEkf(StreamingFilter):
         """
         nr = len(rt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
+        guess_s = 0.0
         if np.isnan(gyro[:, 0]).any():  # no IMU sample (yet): a still one (zero acceleration)
             nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
+            guess_s = float(dt[nan].sum())
         rs, vs, ps, s = mechanise(
             self.R[None], self.v[None], self.p[None], self.bg[None], self.ba[None],
             gyro, accel, dt, self.gravity,
@@ -314,6 +316,8 @@ class ErrorStateEkf(StreamingFilter):
         phi = pre.phi(-1)
         t_win = float(pre.t[-1])
         q = block_noise(phi, self.q_diag, t_win)
+        if guess_s > 0.0 and self.has_wheel:  # a dropout's still guess: what it cannot see
+            q = q + self.dropout_noise(guess_s)
         if self.n_bias:
             f, qb = self.bias_decay(t_win)
             if self.consider is not None:

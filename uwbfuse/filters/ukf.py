@@ -235,10 +235,12 @@ class ErrorStateUkf(ErrorStateEkf):
             return super()._window(t_b, rt, ra, rr, wt, wv)
         nr, nw = len(rt), len(wt)
         gyro, accel, dt, kidx = self.imu_grid(t_b, np.concatenate([rt, wt]))
+        guess_s = 0.0
         if np.isnan(gyro[:, 0]).any():
             nan = np.isnan(gyro[:, 0])
             gyro[nan] = self.bg
             accel[nan] = self.R.T @ np.array([0.0, 0.0, self.gravity]) + self.ba
+            guess_s = float(dt[nan].sum())
         off = self.weights.offsets(self.P)                      # (S,15 + biases)
         r0 = so3_exp(off[:, TH]) @ self.R
         rs, vs, ps, _ = mechanise(
@@ -262,6 +264,8 @@ class ErrorStateUkf(ErrorStateEkf):
         ex_mean = wts.wm @ ex
         dxx = ex - ex_mean
         q = self._q(t)
+        if guess_s > 0.0 and self.has_wheel:  # a dropout's still guess: what it cannot see
+            q = q + self.dropout_noise(guess_s)
         q_full = augment(q, qb) if nb else q
         p_prior = (dxx.T * wts.wc) @ dxx + q_full
         if self.consider is not None:

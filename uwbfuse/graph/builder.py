@@ -753,9 +753,10 @@ class GraphBuilder:
                           ) -> np.ndarray | None:
         """What an IMU dropout's guess inside [t_a, t_b] adds to the keyframe's IMU factor
         (`imu.guess_covariance`): the motion unseen, at the constant-velocity prior's
-        densities (MOTION_ACCEL_DENSITY_START, `graph.motion_turn_density`); None without a
-        dropout or for the constant-velocity prior's own virtual IMU."""
-        if self.cv_motion or self.pim_params is None:
+        densities (MOTION_ACCEL_DENSITY_START, `graph.motion_turn_density`), where wheels
+        carry the motion through it; None without a dropout or without wheels (there the
+        still guess at the IMU's noise is the only motion model: session 29)."""
+        if self.cv_motion or self.pim_params is None or not self.has_wheel:
             return None
         guess_s = self.imu.guess_s(t_a, t_b)
         if guess_s <= 0.0:
