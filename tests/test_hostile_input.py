@@ -510,6 +510,18 @@ def test_tum_rows_out_of_range_are_errors(tmp_path: Path, row: str, match: str) 
     assert "\n" not in str(e.value)
 
 
+def test_a_huge_quaternion_is_an_error_without_an_overflow_warning(tmp_path: Path) -> None:
+    """test that a 1e308 quaternion component is a one-line TrajectoryFileError and raises
+    no RuntimeWarning on the way (its norm's squares overflowed in np.linalg.norm's dot)"""
+    import warnings
+
+    p = _tum(tmp_path / "e.tum", ["0 0 0 0 0 0 0 1", "1 0 0 0 1e308 1e308 0 1"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(TrajectoryFileError, match="huge quaternion"):
+            read_tum(p)
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.lists(st.sampled_from(["0", "1", "-1", "1e308", "nan", "inf", "1e-200",
                                           "9.3e9", "x", "1.000000000001", ""]),
