@@ -255,6 +255,22 @@ def test_an_imu_gap_is_carried_by_the_wheels(method: Method) -> None:
     assert ev.ate_2d.rmse < 0.2  # measured ekf 0.069, ukf 0.111
 
 
+def test_dropout_noise_follows_the_turn_density() -> None:
+    """test that the still guess's process noise puts `[graph] motion_turn_density` on the
+    yaw and MOTION_ACCEL_DENSITY_START on the velocity over the guessed seconds, nothing on
+    roll and pitch"""
+    from uwbfuse.constants import MOTION_ACCEL_DENSITY_START
+
+    log = simulate("factory", 5.0, 3)
+    for turn in (0.5, 2.0):
+        cfg = Config(graph={"motion_turn_density": turn})
+        est = ekf.make_filter(cfg, log.anchors, sensor_streams(log))
+        q = est.dropout_noise(0.4)
+        assert math.isclose(q[8, 8], turn**2 * 0.4)
+        assert np.allclose(np.diag(q)[3:6], MOTION_ACCEL_DENSITY_START**2 * 0.4)
+        assert q[6, 6] == q[7, 7] == 0.0 and est.has_wheel
+
+
 def test_a_gross_range_at_the_start_does_not_pass_as_a_range_scale() -> None:
     """Test that the EKF keeps its track when the first range after its start is a gross
     outlier (warehouse-nlos seed 0, 120 s: anchor A1 reads 1.9 m long at the start, with two

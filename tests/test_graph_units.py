@@ -535,15 +535,19 @@ def test_a_dropout_guess_adds_the_unseen_motion_to_the_imu_factor():
     buf = imu.ImuBuffer()
     t = np.arange(0, 1_000_000_001, 10_000_000, dtype=np.int64)  # 100 Hz for 1 s
     buf.add(t, np.zeros((len(t), 3)), np.tile([0.0, 0.0, 9.81], (len(t), 1)))
-    assert buf.guess_s(0, 1_000_000_000) == 0.0
-    assert math.isclose(buf.guess_s(1_000_000_000, 3_000_000_000), 2.0 - MAX_EXTRAPOLATION_S)
-    assert math.isclose(buf.guess_s(2_000_000_000, 2_100_000_000), 0.1)
     params = imu.preintegration_params(ImuConfig(), Extrinsics())
     bias = gtsam.imuBias.ConstantBias()
     rest = imu.rest_reading(params, gtsam.Rot3(), bias)
+
+    def guess_s(t0: int, t1: int) -> float:
+        return buf.pieces_with_guess(t0, t1, lambda: rest)[3]
+
+    assert guess_s(0, 1_000_000_000) == 0.0
+    assert math.isclose(guess_s(1_000_000_000, 3_000_000_000), 2.0 - MAX_EXTRAPOLATION_S)
+    assert math.isclose(guess_s(2_000_000_000, 2_100_000_000), 0.1)
     t0, t1 = 2_000_000_000, 2_100_000_000  # a keyframe inside the dropout
-    pieces = buf.pieces(t0, t1, lambda: rest)
-    g = imu.guess_covariance(params, bias, pieces, buf.guess_s(t0, t1), 1.0, 0.5)
+    *pieces, g_s = buf.pieces_with_guess(t0, t1, lambda: rest)
+    g = imu.guess_covariance(params, bias, tuple(pieces), g_s, 1.0, 0.5)
     # rows: rotation (3), position (3), velocity (3), biases (6)
     assert math.isclose(g[2, 2], 0.5**2 * 0.1, rel_tol=1e-6)  # yaw: turn density^2 x s
     assert abs(g[0, 0]) < 1e-12 and abs(g[1, 1]) < 1e-12  # roll, pitch: the IMU's own

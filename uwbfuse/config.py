@@ -279,7 +279,8 @@ class GraphConfig(_Section):
         0.5, gt=0, allow_inf_nan=False,
         description="logs with neither IMU nor wheels: white-noise turn rate of that prior, "
         "rad/s/sqrt(Hz) (yaw only matters through the tag's lever arm; roll and pitch are "
-        "held level)"
+        "held level); also the yaw rate an IMU dropout's still guess cannot see on a log with "
+        "wheels (graph and filters)"
     )
     imu_noise_inflation: float | Literal["auto"] = Field(
         "auto", description="factor on the IMU noise densities and bias random walks in "

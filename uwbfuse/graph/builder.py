@@ -748,21 +748,19 @@ class GraphBuilder:
             return out
         return [gtsam.Pose3() for _ in range(len(t_b))]
 
-    def _guess_covariance(self, t_a: int, t_b: int, bias: gtsam.imuBias.ConstantBias,
+    def _guess_covariance(self, guess_s: float, bias: gtsam.imuBias.ConstantBias,
                           pieces: tuple[np.ndarray, np.ndarray, np.ndarray]
                           ) -> np.ndarray | None:
-        """What an IMU dropout's guess inside [t_a, t_b] adds to the keyframe's IMU factor
-        (`imu.guess_covariance`): the motion unseen, at the constant-velocity prior's
-        densities (MOTION_ACCEL_DENSITY_START, `graph.motion_turn_density`), where wheels
-        carry the motion through it; None without a dropout or without wheels (there the
-        still guess at the IMU's noise is the only motion model: session 29)."""
-        if self.cv_motion or self.pim_params is None or not self.has_wheel:
-            return None
-        guess_s = self.imu.guess_s(t_a, t_b)
-        if guess_s <= 0.0:
+        """What an IMU dropout's guess of `guess_s` seconds adds to the keyframe's IMU
+        factor (`imu.guess_covariance`): the motion unseen, at the constant-velocity prior's
+        densities (MOTION_ACCEL_DENSITY_START, `graph.motion_turn_density`; the filters'
+        `dropout_noise` alike), where wheels carry the motion through it; None without a
+        dropout or without wheels (there the still guess at the IMU's noise is the only
+        motion model: session 29)."""
+        if guess_s <= 0.0 or self.cv_motion or self.pim_params is None or not self.has_wheel:
             return None
         return imu_mod.guess_covariance(self.pim_params, bias, pieces, guess_s,
-                                        self.motion_accel_density(1.0),
+                                        MOTION_ACCEL_DENSITY_START,
                                         self.g.motion_turn_density)
 
     def _rest(self, pose: gtsam.Pose3, bias: gtsam.imuBias.ConstantBias
@@ -996,12 +994,13 @@ class GraphBuilder:
             track = self.wheel.at(np.concatenate([[t_a, t_b], ranges[0]]).astype(np.int64))
             rel = se2_between(track[:1], track[1:])
         if self.has_imu:
-            gy, ac, dts = self.imu.pieces(t_a, t_b, self._rest(pose_a, bias_a))
+            gy, ac, dts, guess_s = self.imu.pieces_with_guess(t_a, t_b,
+                                                              self._rest(pose_a, bias_a))
             if len(dts) == 0:
                 gy, ac, dts = np.zeros((1, 3)), np.array([[0, 0, self.cfg.imu.gravity]]), [dt]
                 dts = np.asarray(dts, dtype=np.float64)
             pim = imu_mod.preintegrate(self.pim_params, bias_a, gy, ac, dts)
-            guess = self._guess_covariance(t_a, t_b, bias_a, (gy, ac, dts))
+            guess = self._guess_covariance(guess_s, bias_a, (gy, ac, dts))
             if self.record and self.full_graph is not None:
                 self.imu_records.add(ka, self.full_graph.size() + inc.graph.size(), bias_a,
                                      gy, ac, dts, guess)  # pushed by `_record` below

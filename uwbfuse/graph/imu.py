@@ -93,7 +93,7 @@ def guess_covariance(
     accel_density: float, turn_density: float,
 ) -> np.ndarray:
     """(15,15) covariance the dropout's guess adds to an IMU factor whose `pieces` hold the
-    rest reading for `guess_s` seconds (`ImuBuffer.pieces`): the motion the guess cannot
+    rest reading for `guess_s` seconds (`ImuBuffer.pieces_with_guess`): the motion the guess cannot
     see, as the constant-velocity prior's white-noise acceleration `accel_density`
     (m/s^2/sqrt(Hz)) and yaw rate `turn_density` (rad/s/sqrt(Hz), about the base's
     vertical; the guess's level attitude is the IMU's own), spread over the factor's pieces
@@ -178,12 +178,21 @@ class ImuBuffer:
         would read with no turn and no acceleration, `rest_reading`; called only then)
         instead of the sample's instantaneous turn rate and acceleration, which held for
         seconds spin the attitude and run away."""
+        return self.pieces_with_guess(t0, t1, rest)[:3]
+
+    def pieces_with_guess(
+        self, t0: int, t1: int, rest: Callable[[], tuple[np.ndarray, np.ndarray]],
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """`pieces` and the seconds of [t0, t1] they fill with the dropout's guess (0:
+        none), from one pass over the samples."""
         cover = self._cover(t0, t1)
         if cover is None:
-            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), 0.0
         idx, _ts, starts, ends, held, cut = cover
+        guess_s = 0.0
         gyro, acc = self._gyro[idx], self._acc[idx]
         if held.any():  # a dropout: split each long hold into the sample, then the guess
+            guess_s = float(np.sum(ends[held] - cut[held])) / NS_PER_S
             starts = np.concatenate([starts, cut[held]])
             ends = np.concatenate([np.where(held, cut, ends), ends[held]])
             n = int(np.sum(held))
@@ -194,7 +203,7 @@ class ImuBuffer:
             starts, ends, gyro, acc = starts[order], ends[order], gyro[order], acc[order]
         dt = (ends - starts).astype(np.float64) / NS_PER_S
         keep = dt > 0
-        return gyro[keep], acc[keep], dt[keep]
+        return gyro[keep], acc[keep], dt[keep], guess_s
 
     def _cover(self, t0: int, t1: int) -> tuple[slice, np.ndarray, np.ndarray, np.ndarray,
                                                  np.ndarray, np.ndarray] | None:
@@ -218,14 +227,6 @@ class ImuBuffer:
         held = ends - ts > hold_ns
         cut = np.maximum(np.minimum(ts + hold_ns, ends), starts)
         return idx, ts, starts, ends, held, cut
-
-    def guess_s(self, t0: int, t1: int) -> float:
-        """Seconds of [t0, t1] that `pieces` fills with the dropout's guess (0: none)."""
-        cover = self._cover(t0, t1)
-        if cover is None:
-            return 0.0
-        _idx, _ts, _starts, ends, held, cut = cover
-        return float(np.sum(ends[held] - cut[held])) / NS_PER_S
 
     def rotation_between(self, t0: int, t1: int, gyro_bias: np.ndarray,
                          body_r_imu: np.ndarray) -> np.ndarray:
