@@ -240,8 +240,9 @@ COLLINEAR_RMS_M = 0.1
 # DOP above which a fix is degenerate: it errs by DOP x the range noise, 30 x (0.03-0.1 m) =
 # 1-3 m, no better than knowing the room
 MAX_DOP = 30.0
-# m: anchors within this z spread are coplanar (a 3-D fix then starts from a 2-D solve below
-# them): 3x the noisiest LOS range noise (0.1 m); less leaves the linear solve's z ill-posed
+# m: anchors within this spread of one plane (level: of height) are coplanar (a 3-D fix then
+# starts from a 2-D solve in the plane's frame, on the floor's side): 3x the noisiest LOS
+# range noise (0.1 m); less leaves the 3-D linear solve's out-of-plane coordinate ill-posed
 COPLANAR_SPREAD = 0.3
 
 # ---------------------------------------------------------------------------------------
