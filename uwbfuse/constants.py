@@ -60,7 +60,8 @@ SOFT_L1_M = 0.2
 START_MAX_OFFSET_M = 1.0
 # largest common range scale error of a sparse start, as STATIC_MAX_SCALE
 START_MAX_SCALE = STATIC_MAX_SCALE
-# m: anchors spread over this much height observe the tag's height
+# m: anchors spread this far off one plane (level or tilted) observe the tag's offset from
+# it, and so its height, apart from a common range offset
 HEIGHT_SPREAD_M = 1.0
 # s of ranges before the wheel-track start: the initialiser needs fixes and 0.5 m of travel
 # (1 s at 0.5 m/s), the solve MIN_TRAVEL_M (4 s); 5 s without a start = too sparse for fixes
