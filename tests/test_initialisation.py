@@ -224,6 +224,43 @@ def test_simulated_imu_uwb_warehouse_still_start() -> None:
     assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
 
 
+# the room's anchors on one tilted plane: A1, A3 low, A2, A4 high (or the other way round)
+TILTED_ROOMS = {
+    "tilted-up": (("A1", (0.0, 0.0, 0.5)), ("A2", (0.0, 6.0, 2.6)),
+                  ("A3", (5.0, 0.0, 0.5)), ("A4", (5.0, 6.0, 2.6))),
+    "tilted-down": (("A1", (0.0, 0.0, 2.6)), ("A2", (0.0, 6.0, 0.5)),
+                    ("A3", (5.0, 0.0, 2.6)), ("A4", (5.0, 6.0, 0.5))),
+}
+
+
+@pytest.mark.parametrize("tilt", list(TILTED_ROOMS))
+def test_anchors_on_a_tilted_plane_start_and_track(tilt: str) -> None:
+    """test that isam2 and ekf start on a room whose anchors lie on one tilted plane, with
+    IMU and UWB and no wheels (3-D fixes; they never started when coplanarity was a height
+    test), and track on the floor's side: after the start 2-D ATE below 0.25 m and 3-D
+    below 0.3 m, where the mirror image across the plane is at least 0.9 m off"""
+    from uwbfuse.estimator import Method
+    from uwbfuse.eval.evaluate import evaluate
+    from uwbfuse.pipeline import estimate
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    sim = simulate_with_truth("room", 45.0, 0, streams=("imu", "uwb"),
+                              anchors=TILTED_ROOMS[tilt])
+    gt = sim.log.ground_truth
+    assert gt is not None
+    for method, start_key in ((Method.ISAM2, "init_t_ns"), (Method.EKF, "initialised_at_ns")):
+        res = estimate(sim.log, method, Config(), covariance=False)
+        t_start = res.report.get(start_key)
+        assert t_start is not None, (method, res.report)
+        ev = evaluate(res.trajectory, gt, max_dt=0.05)
+        after = ev.t_ns >= t_start
+        assert np.count_nonzero(after) > 100  # 10 s of poses after the start
+        # Measured (docs/results.md, session 38): 0.02-0.16 m 2-D, 0.03-0.18 m 3-D over
+        # seeds 0-4 and both tilts.
+        assert np.sqrt(np.mean(ev.ate_2d_errors[after] ** 2)) < 0.25, method
+        assert np.sqrt(np.mean(ev.ate_3d_errors[after] ** 2)) < 0.3, method
+
+
 def test_provisional_state_before_heading() -> None:
     """test that a provisional state (position known, heading flagged unknown) exists while
     try_initialise still waits for motion"""

@@ -12,19 +12,27 @@ from tests.synth_positioning import ROOM
 from uwbfuse.config import Config, RobustKernel
 from uwbfuse.nlos import NlosModel, NlosParams, nlos_probability
 from uwbfuse.positioning.multilateration import (
+    anchor_plane,
     epochs_by_window,
     gauss_newton,
     group_epochs,
     linear_ls,
     multilaterate,
+    off_plane_spread,
     project_ranges,
     robust_weights,
     select_nearest,
 )
 from uwbfuse.positioning.nlos_weighting import calibrate_nlos, weighted_fix
+from uwbfuse.positioning.start import anchors_observe_height
 from uwbfuse.streams import AnchorMap
 
 A3D = np.vstack([ROOM.positions, [[2.5, 3.0, 3.0]]])  # one anchor off the plane
+# the room's anchors on one plane tilted about x: A1, A3 at 0.5 m, A2, A4 at 2.6 m (and the
+# plane tilted the other way); TWISTED: the same heights crossed over, on no plane
+_H = {"up": (0.5, 2.6, 0.5, 2.6), "down": (2.6, 0.5, 2.6, 0.5), "twisted": (0.5, 2.6, 2.6, 0.5)}
+TILTED, TILTED_DOWN, TWISTED = (np.column_stack([ROOM.positions[:, :2], h])
+                                for h in _H.values())
 
 
 def _points(n: int, z: float | None = 0.3, seed: int = 0) -> np.ndarray:
@@ -66,6 +74,67 @@ def test_gauss_newton_exact_3d(anchors: np.ndarray) -> None:
     assert fx.ok.all()
     np.testing.assert_allclose(fx.position, p, atol=1e-6)
     assert np.all(fx.dop > 0) and np.all(np.isfinite(fx.cov))
+
+
+@pytest.mark.parametrize(
+    ("anchors", "level", "coplanar"),
+    [(ROOM.positions, True, True),
+     (ROOM.positions + np.outer([0.1, -0.1, 0.05, 0.0], [0, 0, 1]), True, True),
+     (TILTED, False, True), (TILTED_DOWN, False, True),
+     (TILTED + np.outer([0.05, -0.05, -0.05, 0.05], [0, 0, 1]), False, True),
+     (TWISTED, None, False), (A3D, None, False)],
+    ids=["level", "level-within-spread", "tilted", "tilted-down", "tilted-within-spread",
+         "twisted", "one-off-the-plane"])
+def test_anchor_plane_is_a_plane_test(anchors: np.ndarray, level: bool | None,
+                                      coplanar: bool) -> None:
+    """test that coplanarity is a plane test: level and tilted planes (within
+    COPLANAR_SPREAD) are planes, the normal points up and is normal to every anchor
+    difference; crossed-over heights and an anchor 1.5 m off the plane are not"""
+    plane = anchor_plane(anchors)
+    assert (plane is not None) == coplanar
+    if plane is None:
+        return
+    assert plane.level == level
+    np.testing.assert_allclose(plane.axes @ plane.axes.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(plane.axes) == pytest.approx(1.0)
+    assert plane.axes[2, 2] > 0.0  # the floor is on the normal's negative side
+    if not level:
+        offsets = (anchors - plane.origin) @ plane.axes[2]
+        assert np.ptp(offsets) < 0.3
+
+
+@pytest.mark.parametrize(("anchors", "observe"),
+                         [(ROOM.positions, False), (TILTED, False), (TILTED_DOWN, False),
+                          (TWISTED, True), (A3D, True)],
+                         ids=["level", "tilted", "tilted-down", "twisted", "one-off-the-plane"])
+def test_height_is_observed_off_a_plane_only(anchors: np.ndarray, observe: bool) -> None:
+    """test that anchors observe the tag's height apart from a common range offset only when
+    they spread off every plane, not when their heights differ on one tilted plane"""
+    assert (off_plane_spread(anchors) >= 1.0) == observe
+    assert anchors_observe_height(anchors) == observe
+
+
+@pytest.mark.parametrize("anchors", [TILTED, TILTED_DOWN], ids=["tilted", "tilted-down"])
+def test_tilted_plane_fix_takes_the_floor_side_not_the_mirror(anchors: np.ndarray) -> None:
+    """test that a 3-D fix with the anchors on one tilted plane, whose 3-D linear system is
+    singular, is found on the floor's side of the plane: its mirror image across the plane
+    has the same ranges and is at least 0.7 m away"""
+    p = _points(30, z=None, seed=2) * [1.0, 1.0, 0.1]  # tags at 0-0.12 m, near the floor
+    r = _ranges(p, anchors)
+    _, ok = linear_ls(anchors, r)
+    assert not ok.any()  # all four anchor differences lie in the plane
+    plane = anchor_plane(anchors)
+    assert plane is not None
+    n = plane.axes[2]
+    mirror = p - 2.0 * ((p - plane.origin) @ n)[:, None] * n
+    np.testing.assert_allclose(_ranges(mirror, anchors), r, atol=1e-9)
+    assert np.all(np.linalg.norm(mirror - p, axis=1) > 0.7)
+    fx = multilaterate(anchors, r, dim=3)
+    assert fx.ok.all()
+    np.testing.assert_allclose(fx.position, p, atol=1e-6)
+    noisy = multilaterate(anchors, r + np.random.default_rng(3).normal(0.0, 0.05, r.shape))
+    assert noisy.ok.all()
+    assert np.all(np.linalg.norm(noisy.position - p, axis=1) < 0.5)
 
 
 def test_huber_refinement_resists_one_outlier() -> None:

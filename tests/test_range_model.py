@@ -144,23 +144,32 @@ def test_the_calibrated_mixture_recovers_constant_anchor_offsets():
     assert ate_cal < ate_mix
 
 
-def test_uwb_only_coplanar_anchors_keep_the_robust_model_out():
-    """Test that where the height is free and the anchors coplanar (a UWB-only room), the
-    robust candidates, whose per-anchor offsets are free from the start, are not fitted:
-    between them the offsets trade against the height there, which no held-out range
-    shows. The two mixtures are."""
-    log = simulate_with_truth("room", 30.0, 0, streams=("uwb",)).log
+# the room's anchors on one tilted plane (A1, A3 at 0.5 m, A2, A4 at 2.6 m): coplanar too
+TILTED = {"anchors": (("A1", (0.0, 0.0, 0.5)), ("A2", (0.0, 6.0, 2.6)),
+                      ("A3", (5.0, 0.0, 0.5)), ("A4", (5.0, 6.0, 2.6)))}
+PLANES = pytest.mark.parametrize("site", [{}, TILTED], ids=["level", "tilted"])
+
+
+@PLANES
+def test_uwb_only_coplanar_anchors_keep_the_robust_model_out(site):
+    """Test that where the height is free and the anchors coplanar (a UWB-only room, its
+    anchors level or on one tilted plane), the robust candidates, whose per-anchor offsets
+    are free from the start, are not fitted: between them the offsets trade against the
+    height there, which no held-out range shows. The two mixtures are."""
+    log = simulate_with_truth("room", 30.0, 0, streams=("uwb",), **site).log
     res = estimate(log, Method.BATCH, Config(), covariance=False)
     assert set(res.report["batch"]["heldout_log_score"]) == {"mixture", "mixture, calibrated"}
 
 
+@PLANES
 @pytest.mark.parametrize("method", [Method.ISAM2, Method.BATCH])
-def test_uwb_only_coplanar_anchors_hold_the_common_offset(method):
+def test_uwb_only_coplanar_anchors_hold_the_common_offset(method, site):
     """Test that where the height is free and the anchors coplanar (a UWB-only room whose
-    radios have no offsets), the common range offset is held at zero: each anchor's
-    reported offset stays within a few centimetres and the height near the truth, where a
-    free common offset drifted with the height (0.25 m and 0.48 m too high online)."""
-    sim = simulate_with_truth("room", 30.0, 0, streams=("uwb",))
+    radios have no offsets, its anchors level or on one tilted plane), the common range
+    offset is held at zero: each anchor's reported offset stays within a few centimetres
+    and the height near the truth, where a free common offset drifted with the height
+    (0.25 m and 0.48 m too high online)."""
+    sim = simulate_with_truth("room", 30.0, 0, streams=("uwb",), **site)
     res = estimate(sim.log, method, Config(), covariance=False)
     offsets = np.array([a["bias_m"] for a in res.report["anchors"].values()])
     assert np.all(np.abs(offsets) < 0.05), offsets

@@ -285,3 +285,26 @@ def test_db3_offered_qos_not_a_list_of_mappings_is_one_line(
         read_log(bag, _anchor_config(sim))
     assert "\n" not in str(e.value) and str(db3) in str(e.value)
     assert "offered_qos_profiles" in str(e.value)
+
+
+def test_db3_rows_of_no_topic_are_counted_skips(tmp_path: Path, sim: SensorLog) -> None:
+    """test db3 message rows whose topic_id is not in the topics table (or is NULL): each a
+    counted skip in the read report, as an MCAP message on an undefined channel is, the
+    rest read (the reader's join with the topics table dropped them uncounted)."""
+    import sqlite3
+
+    cfg = _anchor_config(sim)
+    bag = tmp_path / "bag"
+    _write_bag(bag, sim, "sqlite3", "")
+    (db3,) = bag.glob("*.db3")
+    with sqlite3.connect(db3) as db:
+        _relax_not_null(db, "messages")
+        (top,) = db.execute("SELECT MAX(id) FROM topics").fetchone()
+        (t0,) = db.execute("SELECT MIN(timestamp) FROM messages").fetchone()
+        rows = [(top + 1, t0 + 1), (top + 1, t0 + 2), (top + 7, t0 + 3), (None, t0 + 4)]
+        db.executemany("INSERT INTO messages (topic_id, timestamp, data) VALUES (?, ?, ?)",
+                       [(i, t, b"\x00\x01\x00\x00") for i, t in rows])
+    got = read_log(bag, cfg)
+    assert got.report.skipped["message on an undefined channel"] == len(rows)
+    assert len(got.imu) == len(sim.imu) and len(got.ranges) == len(sim.ranges)
+    assert len(got.wheel) == len(sim.wheel)

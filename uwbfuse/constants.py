@@ -60,7 +60,8 @@ SOFT_L1_M = 0.2
 START_MAX_OFFSET_M = 1.0
 # largest common range scale error of a sparse start, as STATIC_MAX_SCALE
 START_MAX_SCALE = STATIC_MAX_SCALE
-# m: anchors spread over this much height observe the tag's height
+# m: anchors spread this far off one plane (level or tilted) observe the tag's offset from
+# it, and so its height, apart from a common range offset
 HEIGHT_SPREAD_M = 1.0
 # s of ranges before the wheel-track start: the initialiser needs fixes and 0.5 m of travel
 # (1 s at 0.5 m/s), the solve MIN_TRAVEL_M (4 s); 5 s without a start = too sparse for fixes
@@ -240,8 +241,9 @@ COLLINEAR_RMS_M = 0.1
 # DOP above which a fix is degenerate: it errs by DOP x the range noise, 30 x (0.03-0.1 m) =
 # 1-3 m, no better than knowing the room
 MAX_DOP = 30.0
-# m: anchors within this z spread are coplanar (a 3-D fix then starts from a 2-D solve below
-# them): 3x the noisiest LOS range noise (0.1 m); less leaves the linear solve's z ill-posed
+# m: anchors within this spread of one plane (level: of height) are coplanar (a 3-D fix then
+# starts from a 2-D solve in the plane's frame, on the floor's side): 3x the noisiest LOS
+# range noise (0.1 m); less leaves the 3-D linear solve's out-of-plane coordinate ill-posed
 COPLANAR_SPREAD = 0.3
 
 # ---------------------------------------------------------------------------------------

@@ -350,7 +350,7 @@ class GraphBuilder:
         self.has_imu = "imu" in streams or self.cv_motion
         self.planar = self.g.planar == "on" or (self.g.planar == "auto" and self.has_wheel)
         # the ranges tell a common range offset from the position (`class_offset`): the
-        # height is held, or the anchors' heights differ enough to observe it
+        # height is held, or the anchors spread off one plane enough to observe it
         self.offset_observable = self.planar or anchors_observe_height(anchors.positions)
         self.period_ns = round(NS_PER_S / self.g.keyframe_rate)
         self.t0 = int(start.t_ns)

@@ -336,6 +336,13 @@ class _SqliteScan:
             raise ValueError("its topics' offered_qos_profiles is not a list of QoS "
                              f"mappings ({type(e).__name__}: {e})") from None
         try:
+            # rows whose topic_id names no row of the topics table (or is NULL): the
+            # reader's join drops them, so they are counted here, as an MCAP message on an
+            # undefined channel is
+            (orphans,) = next(iter(storage.dbconn.execute(
+                "SELECT COUNT(*) FROM messages LEFT JOIN topics"
+                " ON messages.topic_id = topics.id WHERE topics.id IS NULL")))
+            self.result.lost_messages_unknown_channel += int(orphans)
             ids = {conn.id: self._channel(conn) for conn in storage.connections}
             wanted = [c for c in storage.connections if ids[c.id] in self.sinks]
             for conn in storage.connections:

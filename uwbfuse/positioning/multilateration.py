@@ -14,6 +14,11 @@ frame (anchor frame, z up), metres.
 - 2-D with a known tag height: the anchor height projection of the INS-UWB paper,
   d = sqrt(l^2 - (h_anchor - h_tag)^2), for the linear step; Gauss-Newton uses the exact
   3-D range with z held at the tag height.
+- 3-D with coplanar anchors (`anchor_plane`: level, or on one tilted plane): the 3-D linear
+  system is singular (every anchor difference lies in the plane) and the ranges have a
+  mirror solution across the plane, so the linear step is the projected 2-D solve in the
+  plane's frame at the offset of a tag below the anchors (the floor's side), and
+  Gauss-Newton refines x, y, z from there.
 - `select_nearest`: keep the k anchors with the shortest ranges (INS-UWB paper, k = 3).
 - `group_epochs`: ranges arrive round robin, anchor by anchor; an epoch takes the latest
   range per anchor within a window ending at the epoch time.
@@ -209,17 +214,75 @@ def gauss_newton(
     return Fixes(p, cov, dop, degenerate, n_used.astype(np.int64), rms, w)
 
 
-def _coplanar(anchors: F64) -> bool:
-    return float(np.ptp(anchors[:, 2])) < COPLANAR_SPREAD if len(anchors) else True
+@dataclass(frozen=True)
+class AnchorPlane:
+    """The plane coplanar anchors lie on (map frame, m).
+
+    origin (3,): the anchors' centroid; axes (3,3): rows e1, e2 in the plane and the normal
+    n, a right-handed rotation from the map frame into the plane's frame, n pointing up
+    (n_z >= 0: the floor is on its negative side). level: the anchors' heights are within
+    COPLANAR_SPREAD, and the map frame itself serves as the plane's frame (each anchor's
+    own height goes into the projection).
+    """
+
+    origin: F64
+    axes: F64
+    level: bool
+
+
+def off_plane_spread(anchors: F64) -> float:
+    """How far the anchors (M,3, m, map frame) spread off one plane (m): the smaller of
+    their height spread (the level plane) and their spread along the normal of their
+    best-fit plane (the smallest singular vector of the centred positions). 0 for three or
+    fewer anchors."""
+    anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
+    if not len(anchors):
+        return 0.0
+    centred = anchors - anchors.mean(axis=0)
+    normal = np.linalg.svd(centred)[2][-1]
+    return min(float(np.ptp(anchors[:, 2])), float(np.ptp(centred @ normal)))
+
+
+def anchor_plane(anchors: F64) -> AnchorPlane | None:
+    """The plane of the anchors (M,3, m, map frame), or None when they are not coplanar
+    (`off_plane_spread` at least COPLANAR_SPREAD): level when their heights are within
+    COPLANAR_SPREAD, else the best-fit plane at any tilt."""
+    anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
+    if not len(anchors) or float(np.ptp(anchors[:, 2])) < COPLANAR_SPREAD:
+        return AnchorPlane(np.zeros(3), np.eye(3), level=True)
+    if off_plane_spread(anchors) >= COPLANAR_SPREAD:
+        return None
+    origin = anchors.mean(axis=0)
+    _, _, vt = np.linalg.svd(anchors - origin)
+    normal = vt[-1] if vt[-1, 2] >= 0.0 else -vt[-1]
+    e1 = vt[0]
+    return AnchorPlane(origin, np.vstack([e1, np.cross(normal, e1), normal]), level=False)
 
 
 def default_tag_z(anchors: F64) -> float:
     """Start height for 3-D solves: 1 m below the mean anchor height (m, map frame).
 
-    With coplanar anchors the range equations have a mirror solution above the anchor
-    plane; starting below selects the tag below the (ceiling or wall mounted) anchors.
+    With coplanar anchors (`anchor_plane`, level or tilted) the range equations have a
+    mirror solution across the anchor plane; starting below selects the tag on the floor's
+    side of the (ceiling or wall mounted) anchors.
     """
     return float(np.mean(anchors[:, 2])) - 1.0
+
+
+def _plane_start(
+    plane: AnchorPlane, anchors: F64, rng: F64, tag_z: F64, w_lin: F64
+) -> F64:
+    """Start (N,3) of a 3-D solve with coplanar anchors: the 2-D solve in the plane's frame
+    at the offset from the plane of a tag at height `tag_z` (N,) below the anchors' centroid
+    (on the floor's side when tag_z is below them), back in the map frame (m)."""
+    if plane.level:
+        d = project_ranges(rng, anchors[:, 2], tag_z)
+        xy, _ = linear_ls(anchors[:, :2], d, w_lin)
+        return np.column_stack([xy, tag_z])
+    local = (anchors - plane.origin) @ plane.axes.T
+    w = (tag_z - plane.origin[2]) * plane.axes[2, 2]
+    uv, _ = linear_ls(local[:, :2], project_ranges(rng, local[:, 2], w), w_lin)
+    return plane.origin + np.column_stack([uv, w]) @ plane.axes
 
 
 def multilaterate(
@@ -240,10 +303,10 @@ def multilaterate(
     anchors (M,3) map frame, m; rng (N,M) ranges, m, NaN = missing (a (M,) row is one
     epoch). dim 2: solve x, y with the tag height `tag_z` (scalar or (N,), m; required)
     by anchor height projection; dim 3: solve x, y, z (`tag_z` is then only the start
-    height for coplanar anchors, default `default_tag_z`). sigma: range std (scalar or
-    (N,M), m); weights (N,M) for the linear step (default 1/sigma^2); nearest: use only
-    the k shortest ranges per epoch (INS-UWB paper: 3). refine=False returns the linear
-    solution with its covariance from the range Jacobian at that point.
+    height for coplanar anchors, level or tilted, default `default_tag_z`). sigma: range
+    std (scalar or (N,M), m); weights (N,M) for the linear step (default 1/sigma^2);
+    nearest: use only the k shortest ranges per epoch (INS-UWB paper: 3). refine=False
+    returns the linear solution with its covariance from the range Jacobian at that point.
     """
     anchors = np.asarray(anchors, dtype=np.float64)
     rng = np.atleast_2d(np.asarray(rng, dtype=np.float64)).copy()
@@ -260,12 +323,11 @@ def multilaterate(
         xy, _ = linear_ls(anchors[:, :2], d, w_lin)
         x0 = np.column_stack([xy, z])
     elif dim == 3:
-        if _coplanar(anchors):
+        plane = anchor_plane(anchors)
+        if plane is not None:
             z0 = default_tag_z(anchors) if tag_z is None else tag_z
             z = np.broadcast_to(np.asarray(z0, dtype=np.float64), (n,)).astype(np.float64)
-            d = project_ranges(rng, anchors[:, 2], z)
-            xy, _ = linear_ls(anchors[:, :2], d, w_lin)
-            x0 = np.column_stack([xy, z])
+            x0 = _plane_start(plane, anchors, rng, z, w_lin)
         else:
             x0, _ = linear_ls(anchors, rng, w_lin)
     else:

@@ -49,6 +49,7 @@ from uwbfuse.positioning.initialisation import (
     solve_seeds,
     start_consistent,
 )
+from uwbfuse.positioning.multilateration import off_plane_spread
 from uwbfuse.positioning.wheel_track import WheelTrack, se2_compose
 from uwbfuse.streams import AnchorMap
 
@@ -225,18 +226,18 @@ def solve_static(
 
 
 def anchors_observe_height(positions: np.ndarray) -> bool:
-    """True when the anchors (N,3, m, map frame) spread over HEIGHT_SPREAD_M of height:
-    only then do ranges tell the tag's height apart (from a common range offset, too)."""
-    z = np.asarray(positions).reshape(-1, 3)[:, 2]
-    return len(z) > 0 and float(z.max() - z.min()) >= HEIGHT_SPREAD_M
+    """True when the anchors (N,3, m, map frame) spread HEIGHT_SPREAD_M off one plane
+    (`off_plane_spread`; level or tilted): only then do ranges tell the tag's offset from
+    the anchors' plane, and so its height, apart from a common range offset."""
+    return len(positions) > 0 and off_plane_spread(positions) >= HEIGHT_SPREAD_M
 
 
 def planar_height(anchors: AnchorMap, z_start: float) -> float:
     """Base height (m) held by the planar constraint.
 
-    When the anchors are (nearly) coplanar the ranges barely observe height, so a start
-    height solved from them is unreliable: the floor is then taken at the map frame's z = 0
-    (anchor heights are measured from the floor). With anchors that observe height
-    (`anchors_observe_height`) the start height is used.
+    When the anchors are (nearly) coplanar, level or tilted, the ranges barely observe
+    height, so a start height solved from them is unreliable: the floor is then taken at
+    the map frame's z = 0 (anchor heights are measured from the floor). With anchors that
+    observe height (`anchors_observe_height`) the start height is used.
     """
     return z_start if anchors_observe_height(anchors.positions) else 0.0
