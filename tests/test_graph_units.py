@@ -343,6 +343,30 @@ def test_hmm_over_several_anchors_equals_one_call_per_anchor():
         hmm_smooth_by_anchor(a, ll_l, ll_n, each, m.p_nlos, jl, p0), gs)
 
 
+def test_hmm_smooth_by_anchor_over_a_window_equals_one_call_per_anchor():
+    """Test that `hmm_smooth_by_anchor`'s chains as slices of the anchor-sorted rows give
+    `hmm_smooth` anchor by anchor bit for bit over a review window's worth of ranges (with
+    and without jump evidence and first priors; anchor labels unsorted and gapped), and
+    nothing for no ranges."""
+    rng = np.random.default_rng(11)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    n = 400
+    a = rng.choice([7, 2, 5, 0, 11], n)
+    ll_l, ll_n = rng.normal(-1.0, 2.0, n), rng.normal(-1.0, 2.0, n)
+    jl = jump_log_likelihoods(rng.normal(0.0, 0.2, n), np.full(n, 0.3), m)
+    p_sw = rng.uniform(0.0, 0.2, n)
+    p0 = rng.uniform(0.0, 1.0, n)
+    for jump, first in ((jl, p0), (None, None), (jl, None)):
+        gs = hmm_smooth_by_anchor(a, ll_l, ll_n, p_sw, m.p_nlos, jump, first)
+        for anc in np.unique(a).tolist():
+            sel = np.flatnonzero(a == anc)
+            ref = hmm_smooth(ll_l[sel], ll_n[sel], p_sw[sel], m.p_nlos,
+                             None if jump is None else jump[sel],
+                             None if first is None else float(first[sel[0]]))
+            np.testing.assert_array_equal(gs[sel], ref)
+    assert hmm_smooth_by_anchor(a[:0], ll_l[:0], ll_n[:0], m.p_switch, m.p_nlos).shape == (0,)
+
+
 @pytest.mark.parametrize("few", [16, 0])  # the Python loop and the numpy path
 def test_switch_probabilities_follow_each_anchors_time_between_ranges(monkeypatch, few):
     """Test that the chain's redraw probability of a range is 1 - exp(-dt / switch_time)

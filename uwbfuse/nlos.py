@@ -481,37 +481,55 @@ def hmm_smooth_by_anchor(
     `p_switch` one probability or one per range (N,) for the step into it. The inputs are
     prepared once for all ranges (the same numbers as anchor by anchor: every step is
     elementwise)."""
-    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
-    p0_list = [None] * len(e0) if p0 is None else np.asarray(p0, np.float64).tolist()
-    g = [0.0] * len(e0)
-    for _, rows in _rows_by_anchor(anchor):
-        post = _smooth_chain([e0[i] for i in rows], [e1[i] for i in rows],
-                             *([t[i] for i in rows] for t in tr), p_nlos, p0_list[rows[0]])
-        for i, x in zip(rows, post, strict=True):
-            g[i] = x
-    return np.array(g, dtype=np.float64)
+    e0, e1, tr = _smooth_input_arrays(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    n = len(e0)
+    if n == 0:
+        return np.zeros(0)
+    # each anchor's chain is one slice of the rows sorted by anchor (stable: each chain
+    # keeps its time order), gathered by one fancy index per column instead of a list
+    # comprehension per chain and column (that was most of this function's time)
+    anchor = np.asarray(anchor)
+    order = np.argsort(anchor, kind="stable")
+    a_s = anchor[order]
+    cuts = (np.flatnonzero(a_s[1:] != a_s[:-1]) + 1).tolist()
+    cols = [c[order].tolist() for c in (e0, e1, *tr)]
+    p0_s = [None] * n if p0 is None else np.asarray(p0, np.float64)[order].tolist()
+    post: list[float] = []
+    for lo, hi in zip([0, *cuts], [*cuts, n], strict=True):
+        post.extend(_smooth_chain(*(c[lo:hi] for c in cols), p_nlos, p0_s[lo]))
+    g = np.empty(n)
+    g[order] = post
+    return g
 
 
 def _smooth_inputs(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64, p_nlos: float,
     jump_ll: np.ndarray | None,
 ) -> tuple[list[float], list[float], tuple[list[float], ...]]:
-    """`hmm_smooth`'s per-range inputs as Python lists: the two likelihoods scaled to
-    their larger one, and the transition matrix into each range (t00, t01, t10, t11),
-    each entry scaled by the jump evidence if any; `p_switch` one value or (N,)."""
+    """`hmm_smooth`'s per-range inputs as Python lists (`_smooth_input_arrays`)."""
+    e0, e1, tr = _smooth_input_arrays(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    return e0.tolist(), e1.tolist(), tuple(t.tolist() for t in tr)
+
+
+def _smooth_input_arrays(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64, p_nlos: float,
+    jump_ll: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """`hmm_smooth`'s per-range inputs (N,): the two likelihoods scaled to their larger
+    one, and the transition matrix into each range (t00, t01, t10, t11), each entry
+    scaled by the jump evidence if any; `p_switch` one value or (N,)."""
     n = len(ll_los)
     q = np.asarray(p_switch, np.float64)[..., None, None]  # () or (N,): (1,1) or (N,1,1)
     a = np.concatenate([np.concatenate([1.0 - q * p_nlos, q * p_nlos], axis=-1),
                         np.concatenate([q * (1.0 - p_nlos), 1.0 - q * (1.0 - p_nlos)], axis=-1)],
                        axis=-2)
     m = np.maximum(ll_los, ll_nlos)
-    e0, e1 = np.exp(ll_los - m).tolist(), np.exp(ll_nlos - m).tolist()
+    e0, e1 = np.exp(ll_los - m), np.exp(ll_nlos - m)
     if jump_ll is None:
         tr = np.broadcast_to(a, (n, 2, 2))
     else:
         tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
-    return e0, e1, (tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist(), tr[:, 1, 0].tolist(),
-                    tr[:, 1, 1].tolist())
+    return e0, e1, (tr[:, 0, 0], tr[:, 0, 1], tr[:, 1, 0], tr[:, 1, 1])
 
 
 def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[float],
