@@ -227,6 +227,15 @@ def test_los_subset_search_finds_the_los_anchors_and_the_track_offset():
     u = (p_true - anchors[a]) / dist[:, None]
     hyp = los_subset_search(a, z - dist, u, np.where(a >= 2, 1.0, 0.0), m)
     assert hyp is not None and hyp.gain < 1.0
+    # without the shift's moment: the same hypothesis, bit for bit, and a zero moment
+    with_m = los_subset_search(a, z - dist, u, np.where(a == 0, 0.0, 1.0), m)
+    no_m = los_subset_search(a, z - dist, u, np.where(a == 0, 0.0, 1.0), m, moment=False)
+    assert with_m is not None and no_m is not None
+    for f in ("anchors", "los", "current", "delta", "excess"):
+        np.testing.assert_array_equal(getattr(no_m, f), getattr(with_m, f))
+    assert no_m.gain == with_m.gain
+    assert np.any(with_m.shift_moment != 0.0)
+    np.testing.assert_array_equal(no_m.shift_moment, np.zeros((2, 2)))
 
 
 def test_plaza_converter_reads_the_gtsam_data():

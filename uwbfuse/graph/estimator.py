@@ -551,7 +551,8 @@ class GraphEstimator(EstimatorBase):
         `h`): the LOS and NLOS residuals against the better hypothesis' shifted track and
         NLOS excesses once it has won SEARCH_PERSIST reviews in a row, else as given."""
         u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
-        hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+        # the shift's moment goes only into the head covariance (`_save_head_covariance`)
+        hyp = los_subset_search(anchor, r_los, u, g_cur, mix, moment=self._head_cov_wanted())
         self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
         better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                   and bool(np.any(hyp.los != hyp.current)))
@@ -632,11 +633,15 @@ class GraphEstimator(EstimatorBase):
         except (RuntimeError, IndexError, ValueError):
             return  # not in this smoother (re-anchored): keep the earlier estimate if any
 
+    def _head_cov_wanted(self) -> bool:
+        """Whether the online head covariance (`_save_head_covariance`) is kept."""
+        return self._with_cov and self.method is Method.ISAM2
+
     def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """isam2: the newest solved keyframe's marginal (plus the window's LOS/NLOS spread
         in x, y), carried to each epoch by `estimate()`; its cost (one marginal per
         update) is in `report()`."""
-        if not self._with_cov or self.method is not Method.ISAM2:
+        if not self._head_cov_wanted():
             return
         tic = time.perf_counter()
         k = b.k

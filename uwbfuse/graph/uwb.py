@@ -127,6 +127,7 @@ def _subsets(m: int) -> np.ndarray:
 def los_subset_search(
     anchor: np.ndarray, r: np.ndarray, u: np.ndarray, g: np.ndarray, model: NlosModel,
     sigma_shift: float = SEARCH_SHIFT_SIGMA, max_anchors: int = SEARCH_MAX_ANCHORS,
+    moment: bool = True,
 ) -> LosHypothesis | None:
     """Which anchors are in LOS over a short window, searched over every LOS/NLOS subset.
 
@@ -145,6 +146,8 @@ def los_subset_search(
     u (N,2) horizontal unit vector from the anchor to the tag (d range / d tag position),
     g (N,) current P(NLOS). Ranges with |r| > 1 m are left out as gross outliers. Returns
     None when there are more than `max_anchors` anchors (2^M subsets) or too few ranges.
+    `moment` False: the hypothesis' `shift_moment` is left zero (a caller that reports no
+    covariance skips its evidence weights; the hypothesis is the same).
     """
     ok = np.abs(r) < 1.0
     anchor, r, u, g = anchor[ok], r[ok], u[ok], g[ok]
@@ -193,10 +196,11 @@ def los_subset_search(
     i_cur = int(np.sum(current.astype(int) << np.arange(m)))
     best = int(np.argmin(np.where(invalid, np.inf, cost)))
     los = subsets[best]
-    # evidence of each subset: its best fit plus the Laplace width of the shift
-    evidence = np.where(invalid, np.inf, cost + 0.5 * np.log(np.linalg.det(a_tot)))
-    w = np.exp(-(evidence - evidence.min()))
-    w /= w.sum()
-    moment = np.einsum("s,si,sj->ij", w, delta, delta)
-    return LosHypothesis(ids, los, current, delta[best], np.where(los, 0.0, ex_all[best]),
-                         float(cost[i_cur] - cost[best]), moment)
+    hyp = LosHypothesis(ids, los, current, delta[best], np.where(los, 0.0, ex_all[best]),
+                        float(cost[i_cur] - cost[best]))
+    if moment:  # evidence of each subset: its best fit plus the Laplace width of the shift
+        evidence = np.where(invalid, np.inf, cost + 0.5 * np.log(np.linalg.det(a_tot)))
+        w = np.exp(-(evidence - evidence.min()))
+        w /= w.sum()
+        hyp.shift_moment = np.einsum("s,si,sj->ij", w, delta, delta)
+    return hyp
