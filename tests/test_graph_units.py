@@ -11,6 +11,7 @@ import pytest
 from uwbfuse.config import RobustKernel, WheelConfig
 from uwbfuse.nlos import (
     NlosModel,
+    _smooth_input_arrays,
     hmm_filter,
     hmm_filter_by_anchor,
     hmm_smooth,
@@ -350,6 +351,32 @@ def test_hmm_over_several_anchors_equals_one_call_per_anchor():
     np.testing.assert_array_equal(prior2, prior)
     np.testing.assert_array_equal(
         hmm_smooth_by_anchor(a, ll_l, ll_n, each, m.p_nlos, jl, p0), gs)
+
+
+def test_smooth_inputs_entry_by_entry_equal_the_transition_matrix():
+    """Test that `_smooth_input_arrays`' transition entries, built one by one, equal the
+    (N,2,2) transition matrix times the scaled jump evidence bit for bit (one switching
+    probability or one per range; with and without the jump evidence)."""
+    rng = np.random.default_rng(12)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    n = 300
+    ll_l, ll_n = rng.normal(-1.0, 2.0, n), rng.normal(-1.0, 2.0, n)
+    jl = jump_log_likelihoods(rng.normal(0.0, 0.2, n), np.full(n, 0.3), m)
+    for p_sw in (rng.uniform(0.0, 0.2, n), 0.05):
+        q = np.asarray(p_sw, np.float64)[..., None, None]
+        a = np.concatenate(
+            [np.concatenate([1.0 - q * m.p_nlos, q * m.p_nlos], axis=-1),
+             np.concatenate([q * (1.0 - m.p_nlos), 1.0 - q * (1.0 - m.p_nlos)], axis=-1)],
+            axis=-2)
+        for jump in (jl, None):
+            ref = (np.broadcast_to(a, (n, 2, 2)) if jump is None
+                   else a * np.exp(jump - jump.max(axis=(1, 2), keepdims=True)))
+            e0, e1, tr = _smooth_input_arrays(ll_l, ll_n, p_sw, m.p_nlos, jump)
+            mx = np.maximum(ll_l, ll_n)
+            np.testing.assert_array_equal(e0, np.exp(ll_l - mx))
+            np.testing.assert_array_equal(e1, np.exp(ll_n - mx))
+            for x, (r, c) in zip(tr, ((0, 0), (0, 1), (1, 0), (1, 1)), strict=True):
+                np.testing.assert_array_equal(np.broadcast_to(x, (n,)), ref[:, r, c])
 
 
 def test_hmm_smooth_by_anchor_over_a_window_equals_one_call_per_anchor():

@@ -519,17 +519,16 @@ def _smooth_input_arrays(
     one, and the transition matrix into each range (t00, t01, t10, t11), each entry
     scaled by the jump evidence if any; `p_switch` one value or (N,)."""
     n = len(ll_los)
-    q = np.asarray(p_switch, np.float64)[..., None, None]  # () or (N,): (1,1) or (N,1,1)
-    a = np.concatenate([np.concatenate([1.0 - q * p_nlos, q * p_nlos], axis=-1),
-                        np.concatenate([q * (1.0 - p_nlos), 1.0 - q * (1.0 - p_nlos)], axis=-1)],
-                       axis=-2)
+    q = np.asarray(p_switch, np.float64)  # () or (N,)
+    qn, ql = q * p_nlos, q * (1.0 - p_nlos)  # into NLOS, into LOS
+    # the transition matrix entry by entry (no (N,2,2) array to build and take apart)
+    a = (1.0 - qn, qn, ql, 1.0 - ql)
     m = np.maximum(ll_los, ll_nlos)
     e0, e1 = np.exp(ll_los - m), np.exp(ll_nlos - m)
     if jump_ll is None:
-        tr = np.broadcast_to(a, (n, 2, 2))
-    else:
-        tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
-    return e0, e1, (tr[:, 0, 0], tr[:, 0, 1], tr[:, 1, 0], tr[:, 1, 1])
+        return e0, e1, tuple(np.broadcast_to(x, (n,)) for x in a)
+    j = np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    return e0, e1, (a[0] * j[:, 0, 0], a[1] * j[:, 0, 1], a[2] * j[:, 1, 0], a[3] * j[:, 1, 1])
 
 
 def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[float],
