@@ -62,20 +62,25 @@ def planar_gaussian6(cov_xyt: np.ndarray,
                      out_of_plane_sigmas: tuple[float, float, float]) -> np.ndarray:
     """`gaussian_covariances(planar_covariance6(cov_xyt, out_of_plane_sigmas))` of one
     (3,3) covariance in (x, y, theta): the (6,6) Pose3 tangent covariance of a wheel
-    factor, in Python floats (the same operations element by element; numpy's per-call
-    cost was most of a keyframe's wheel factor)."""
+    factor, in Python floats: only the 12 entries that are not zero, each by the same
+    operations as the array passes (their floor, their symmetrisation, their diagonal
+    floor; `+ 0.0` where they add a zero, which turns -0.0 into 0.0). numpy's per-call
+    cost was most of a keyframe's wheel factor, and a 36-entry pass in Python most of
+    the rest."""
     c = np.asarray(cov_xyt, dtype=np.float64).tolist()
     sr, sp, sz = out_of_plane_sigmas
-    m = [[0.0] * 6 for _ in range(6)]
-    m[0][0], m[1][1], m[5][5] = sr**2, sp**2, sz**2
-    for i, row in zip(_PLANAR_IX, c, strict=True):
-        for j, x in zip(_PLANAR_IX, row, strict=True):
-            m[i][j] = x
-    floor = [0.0, 0.0, 1e-6, 1e-6, 1e-6, 0.0]  # `planar_covariance6`'s, then the diagonal
-    a = [[m[i][j] + (floor[i] if i == j else 0.0) for j in range(6)] for i in range(6)]
-    cov6 = np.array([[0.5 * (a[i][j] + a[j][i]) + (1e-12 if i == j else 0.0)
-                      for j in range(6)] for i in range(6)])  # of `gaussian_covariances`
-    return cov6
+    out = [0.0] * 36
+    for i, var in ((0, sr**2), (1, sp**2), (5, sz**2)):  # no floor there
+        a = var + 0.0
+        out[7 * i] = 0.5 * (a + a) + 1e-12
+    for r, i in enumerate(_PLANAR_IX):
+        for s, j in enumerate(_PLANAR_IX):
+            if r == s:  # `planar_covariance6`'s 1e-6 floor on x, y and theta
+                a = c[r][r] + 1e-6
+                out[7 * i] = 0.5 * (a + a) + 1e-12
+            else:
+                out[6 * i + j] = 0.5 * ((c[r][s] + 0.0) + (c[s][r] + 0.0)) + 0.0
+    return np.array(out, dtype=np.float64).reshape(6, 6)
 
 
 def between_factors(
