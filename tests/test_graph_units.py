@@ -618,3 +618,21 @@ def test_a_dropout_guess_adds_the_unseen_motion_to_the_imu_factor():
     assert abs(g[0, 0]) < 1e-12 and abs(g[1, 1]) < 1e-12  # roll, pitch: the IMU's own
     assert np.allclose(np.diag(g)[6:9], 1.0**2 * 0.1, rtol=1e-3)  # velocity
     assert np.allclose(g[9:, 9:], 0.0)
+
+
+def test_unique_inverse_equals_numpys():
+    """Test that `graph.uwb.unique_inverse` (a sort and a search) gives
+    `np.unique(x, return_inverse=True)`'s codes and inverse for (anchor, segment) codes
+    and anchor indices, one code, repeated codes and none."""
+    from uwbfuse.graph.uwb import unique_inverse
+
+    rng = np.random.default_rng(17)
+    cases = [rng.integers(0, 4, n) * (1 << 40) + rng.integers(0, 9, n) for n in (1, 7, 135, 400)]
+    cases += [rng.integers(0, 8, 135), np.full(5, 3 << 40), np.zeros(0, np.int64)]
+    for x in cases:
+        code, inv = unique_inverse(x)
+        ref_code, ref_inv = np.unique(x, return_inverse=True)
+        np.testing.assert_array_equal(code, ref_code)
+        np.testing.assert_array_equal(inv, ref_inv.ravel())
+        assert code.dtype == ref_code.dtype and inv.dtype == ref_inv.dtype
+        np.testing.assert_array_equal(code[inv], x)

@@ -40,6 +40,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+import math
 import time
 from typing import Any
 
@@ -74,7 +75,7 @@ from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.review_queue import ReviewQueue
-from uwbfuse.graph.uwb import los_subset_search
+from uwbfuse.graph.uwb import los_subset_search, unique_inverse
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.nlos import (
     NlosModel,
@@ -531,16 +532,18 @@ class GraphEstimator(EstimatorBase):
         holds one, else `default` (m)."""
         # the (anchor, segment) pairs, sorted by anchor then segment (segments >= 0: the
         # builder drops ranges before its first keyframe), as one int64 code each
-        code, inv = np.unique(anchor.astype(np.int64) * _PAIR + seg, return_inverse=True)
-        e_pair = np.full(len(code), np.nan)
-        for i, (a, sg) in enumerate(zip((code // _PAIR).tolist(), (code % _PAIR).tolist(),
-                                        strict=True)):
-            if (a, sg) in b.e_created:
+        code, inv = unique_inverse(anchor.astype(np.int64) * _PAIR + seg)
+        created, value = b.e_created, sm.double
+        e_pair = []
+        for a, sg in zip((code // _PAIR).tolist(), (code % _PAIR).tolist(), strict=True):
+            e = math.nan
+            if (a, sg) in created:
                 try:
-                    e_pair[i] = sm.double(nlos_key(a, sg))
+                    e = value(nlos_key(a, sg))
                 except (RuntimeError, IndexError):
                     pass
-        e_r = e_pair[inv.ravel()]
+            e_pair.append(e)
+        e_r = np.array(e_pair, dtype=np.float64)[inv]
         return np.where(np.isnan(e_r), default, e_r)
 
     def _search_switch(

@@ -124,6 +124,14 @@ def _subsets(m: int) -> np.ndarray:
     return out
 
 
+def unique_inverse(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`np.unique(x, return_inverse=True)` of integers (N,), by one sort and a search: the
+    same arrays at half the cost for a review window's few hundred ranges."""
+    srt = np.sort(x)
+    code = srt[np.concatenate([[True], srt[1:] != srt[:-1]])] if len(srt) else srt
+    return code, np.searchsorted(code, x)
+
+
 def los_subset_search(
     anchor: np.ndarray, r: np.ndarray, u: np.ndarray, g: np.ndarray, model: NlosModel,
     sigma_shift: float = SEARCH_SHIFT_SIGMA, max_anchors: int = SEARCH_MAX_ANCHORS,
@@ -151,7 +159,7 @@ def los_subset_search(
     """
     ok = np.abs(r) < 1.0
     anchor, r, u, g = anchor[ok], r[ok], u[ok], g[ok]
-    ids, inv = np.unique(anchor, return_inverse=True)
+    ids, inv = unique_inverse(anchor)
     m = len(ids)
     if m == 0 or m > max_anchors or len(r) < 3 * m:
         return None
