@@ -396,24 +396,17 @@ def hmm_filter_by_anchor(
     for the step into it (`switch_probabilities`). The inputs are prepared once for all
     ranges (the same numbers as anchor by anchor: every step is elementwise)."""
     d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
-    per_range = np.asarray(p_switch, np.float64).tolist() if np.ndim(p_switch) else None
-    g, prior = [0.0] * len(d), [0.0] * len(d)
-    for a, rows in _rows_by_anchor(anchor):
-        out, p_last[a], priors = _filter_chain(
-            [d[i] for i in rows], None if jl is None else [jl[i] for i in rows],
-            float(p_switch) if per_range is None else [per_range[i] for i in rows],
-            p_nlos, p_last[a])
-        for i, x, q in zip(rows, out, priors, strict=True):
-            g[i], prior[i] = x, q
+    keys = np.asarray(anchor).tolist()
+    steps = (np.asarray(p_switch, np.float64).tolist() if np.ndim(p_switch)
+             else [float(p_switch)] * len(d))
+    # the chains interleaved in the ranges' order, each anchor's P(NLOS) carried in a
+    # dict: a keyframe has about one range per anchor, where gathering each anchor's rows
+    # into a chain of its own cost more than its steps
+    p = {a: p_last[a] for a in set(keys)}
+    g, prior = _filter_steps(keys, d, jl, steps, p_nlos, p)
+    for a, x in p.items():
+        p_last[a] = x
     return np.array(g, dtype=np.float64), np.array(prior, dtype=np.float64)
-
-
-def _rows_by_anchor(anchor: np.ndarray) -> list[tuple[int, list[int]]]:
-    """(anchor, its rows in order) for each anchor of `anchor` (N,), anchors ascending."""
-    rows: dict[int, list[int]] = {}
-    for i, a in enumerate(np.asarray(anchor).tolist()):
-        rows.setdefault(a, []).append(i)
-    return sorted(rows.items())
 
 
 def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray | None
@@ -428,27 +421,38 @@ def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray 
 
 def _filter_chain(d: list[float], jl: list | None, p_switch: float | list[float],
                   p_nlos: float, p0: float) -> tuple[list[float], float, list[float]]:
-    """`hmm_filter`'s loop over one chain in Python floats (numpy item access was most of
-    its time; the same values); `p_switch` one value or one per range."""
-    out, priors = [], []
-    p = p0
+    """`hmm_filter`'s loop over one chain (`_filter_steps`); `p_switch` one value or one
+    per range."""
     steps = p_switch if isinstance(p_switch, list) else [p_switch] * len(d)
-    for i, q in enumerate(steps):
+    p = {0: p0}
+    out, priors = _filter_steps([0] * len(d), d, jl, steps, p_nlos, p)
+    return out, p[0], priors
+
+
+def _filter_steps(keys: list[int], d: list[float], jl: list | None, steps: list[float],
+                  p_nlos: float, p: dict[int, float]) -> tuple[list[float], list[float]]:
+    """The forward steps of `hmm_filter` in Python floats (numpy item access was most of
+    its time; the same values): range i continues chain `keys[i]` from `p[keys[i]]`, its
+    P(NLOS) so far (updated in place); P(NLOS) and the predicted prior per range."""
+    out, priors = [], []
+    for i, (a, q) in enumerate(zip(keys, steps, strict=True)):
+        pa = p[a]
         t_ln = q * p_nlos  # P(LOS -> NLOS)
         t_nl = q * (1.0 - p_nlos)  # P(NLOS -> LOS)
         if jl is None:
-            prior = (1.0 - q) * p + q * p_nlos
+            prior = (1.0 - q) * pa + q * p_nlos
         else:
             (j00, j01), (j10, j11) = jl[i]
-            to_n = (1.0 - p) * t_ln * j01 + p * (1.0 - t_nl) * j11
-            to_l = (1.0 - p) * (1.0 - t_ln) * j00 + p * t_nl * j10
+            to_n = (1.0 - pa) * t_ln * j01 + pa * (1.0 - t_nl) * j11
+            to_l = (1.0 - pa) * (1.0 - t_ln) * j00 + pa * t_nl * j10
             prior = to_n / max(to_n + to_l, 1e-300)
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
         priors.append(prior)
         lo = math.log(prior / (1.0 - prior)) + d[i]
-        p = 1.0 / (1.0 + math.exp(-lo))
-        out.append(p)
-    return out, p, priors
+        pa = 1.0 / (1.0 + math.exp(-lo))
+        out.append(pa)
+        p[a] = pa
+    return out, priors
 
 
 def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
