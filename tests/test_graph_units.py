@@ -11,6 +11,7 @@ import pytest
 from uwbfuse.config import RobustKernel, WheelConfig
 from uwbfuse.nlos import (
     NlosModel,
+    _smooth_input_arrays,
     hmm_filter,
     hmm_filter_by_anchor,
     hmm_smooth,
@@ -227,6 +228,15 @@ def test_los_subset_search_finds_the_los_anchors_and_the_track_offset():
     u = (p_true - anchors[a]) / dist[:, None]
     hyp = los_subset_search(a, z - dist, u, np.where(a >= 2, 1.0, 0.0), m)
     assert hyp is not None and hyp.gain < 1.0
+    # without the shift's moment: the same hypothesis, bit for bit, and a zero moment
+    with_m = los_subset_search(a, z - dist, u, np.where(a == 0, 0.0, 1.0), m)
+    no_m = los_subset_search(a, z - dist, u, np.where(a == 0, 0.0, 1.0), m, moment=False)
+    assert with_m is not None and no_m is not None
+    for f in ("anchors", "los", "current", "delta", "excess"):
+        np.testing.assert_array_equal(getattr(no_m, f), getattr(with_m, f))
+    assert no_m.gain == with_m.gain
+    assert np.any(with_m.shift_moment != 0.0)
+    np.testing.assert_array_equal(no_m.shift_moment, np.zeros((2, 2)))
 
 
 def test_plaza_converter_reads_the_gtsam_data():
@@ -277,16 +287,21 @@ def test_nlos_key_is_gtsam_symbol():
 
 def test_one_wheel_covariance_equals_the_array_pass():
     """Test `planar_gaussian6` (one keyframe's wheel factor covariance in Python floats)
-    against `gaussian_covariances(planar_covariance6(...))`, bit for bit."""
+    against `gaussian_covariances(planar_covariance6(...))`, bit for bit (signed zeros
+    too)."""
     from uwbfuse.graph.noise import gaussian_covariances
 
     rng = np.random.default_rng(8)
     for i in range(500):
         a = rng.normal(size=(3, 3)) * 10.0 ** rng.integers(-6, 0)
         c = a @ a.T if i % 2 else a  # symmetric, and not
+        if i % 5 == 0:
+            c[0, 1] = c[1, 0] = -0.0
+            c[2, 0] = 0.0
         oop = tuple(rng.uniform(0.001, 0.3, 3).tolist())
-        np.testing.assert_array_equal(planar_gaussian6(c, oop),
-                                      gaussian_covariances(planar_covariance6(c, oop)))
+        np.testing.assert_array_equal(
+            planar_gaussian6(c, oop).view(np.int64),
+            gaussian_covariances(planar_covariance6(c, oop)).view(np.int64))
 
 
 def test_residual_jumps_of_a_few_ranges_equal_the_vectorised_pass():
@@ -341,6 +356,56 @@ def test_hmm_over_several_anchors_equals_one_call_per_anchor():
     np.testing.assert_array_equal(prior2, prior)
     np.testing.assert_array_equal(
         hmm_smooth_by_anchor(a, ll_l, ll_n, each, m.p_nlos, jl, p0), gs)
+
+
+def test_smooth_inputs_entry_by_entry_equal_the_transition_matrix():
+    """Test that `_smooth_input_arrays`' transition entries, built one by one, equal the
+    (N,2,2) transition matrix times the scaled jump evidence bit for bit (one switching
+    probability or one per range; with and without the jump evidence)."""
+    rng = np.random.default_rng(12)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    n = 300
+    ll_l, ll_n = rng.normal(-1.0, 2.0, n), rng.normal(-1.0, 2.0, n)
+    jl = jump_log_likelihoods(rng.normal(0.0, 0.2, n), np.full(n, 0.3), m)
+    for p_sw in (rng.uniform(0.0, 0.2, n), 0.05):
+        q = np.asarray(p_sw, np.float64)[..., None, None]
+        a = np.concatenate(
+            [np.concatenate([1.0 - q * m.p_nlos, q * m.p_nlos], axis=-1),
+             np.concatenate([q * (1.0 - m.p_nlos), 1.0 - q * (1.0 - m.p_nlos)], axis=-1)],
+            axis=-2)
+        for jump in (jl, None):
+            ref = (np.broadcast_to(a, (n, 2, 2)) if jump is None
+                   else a * np.exp(jump - jump.max(axis=(1, 2), keepdims=True)))
+            e0, e1, tr = _smooth_input_arrays(ll_l, ll_n, p_sw, m.p_nlos, jump)
+            mx = np.maximum(ll_l, ll_n)
+            np.testing.assert_array_equal(e0, np.exp(ll_l - mx))
+            np.testing.assert_array_equal(e1, np.exp(ll_n - mx))
+            for x, (r, c) in zip(tr, ((0, 0), (0, 1), (1, 0), (1, 1)), strict=True):
+                np.testing.assert_array_equal(np.broadcast_to(x, (n,)), ref[:, r, c])
+
+
+def test_hmm_smooth_by_anchor_over_a_window_equals_one_call_per_anchor():
+    """Test that `hmm_smooth_by_anchor`'s chains as slices of the anchor-sorted rows give
+    `hmm_smooth` anchor by anchor bit for bit over a review window's worth of ranges (with
+    and without jump evidence and first priors; anchor labels unsorted and gapped), and
+    nothing for no ranges."""
+    rng = np.random.default_rng(11)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    n = 400
+    a = rng.choice([7, 2, 5, 0, 11], n)
+    ll_l, ll_n = rng.normal(-1.0, 2.0, n), rng.normal(-1.0, 2.0, n)
+    jl = jump_log_likelihoods(rng.normal(0.0, 0.2, n), np.full(n, 0.3), m)
+    p_sw = rng.uniform(0.0, 0.2, n)
+    p0 = rng.uniform(0.0, 1.0, n)
+    for jump, first in ((jl, p0), (None, None), (jl, None)):
+        gs = hmm_smooth_by_anchor(a, ll_l, ll_n, p_sw, m.p_nlos, jump, first)
+        for anc in np.unique(a).tolist():
+            sel = np.flatnonzero(a == anc)
+            ref = hmm_smooth(ll_l[sel], ll_n[sel], p_sw[sel], m.p_nlos,
+                             None if jump is None else jump[sel],
+                             None if first is None else float(first[sel[0]]))
+            np.testing.assert_array_equal(gs[sel], ref)
+    assert hmm_smooth_by_anchor(a[:0], ll_l[:0], ll_n[:0], m.p_switch, m.p_nlos).shape == (0,)
 
 
 @pytest.mark.parametrize("few", [16, 0])  # the Python loop and the numpy path
@@ -553,3 +618,21 @@ def test_a_dropout_guess_adds_the_unseen_motion_to_the_imu_factor():
     assert abs(g[0, 0]) < 1e-12 and abs(g[1, 1]) < 1e-12  # roll, pitch: the IMU's own
     assert np.allclose(np.diag(g)[6:9], 1.0**2 * 0.1, rtol=1e-3)  # velocity
     assert np.allclose(g[9:, 9:], 0.0)
+
+
+def test_unique_inverse_equals_numpys():
+    """Test that `graph.uwb.unique_inverse` (a sort and a search) gives
+    `np.unique(x, return_inverse=True)`'s codes and inverse for (anchor, segment) codes
+    and anchor indices, one code, repeated codes and none."""
+    from uwbfuse.graph.uwb import unique_inverse
+
+    rng = np.random.default_rng(17)
+    cases = [rng.integers(0, 4, n) * (1 << 40) + rng.integers(0, 9, n) for n in (1, 7, 135, 400)]
+    cases += [rng.integers(0, 8, 135), np.full(5, 3 << 40), np.zeros(0, np.int64)]
+    for x in cases:
+        code, inv = unique_inverse(x)
+        ref_code, ref_inv = np.unique(x, return_inverse=True)
+        np.testing.assert_array_equal(code, ref_code)
+        np.testing.assert_array_equal(inv, ref_inv.ravel())
+        assert code.dtype == ref_code.dtype and inv.dtype == ref_inv.dtype
+        np.testing.assert_array_equal(code[inv], x)

@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 
 from uwbfuse.config import WheelConfig
+from uwbfuse.graph.wheel import _wheel_scale_evidence_arrays, _wheel_scale_evidence_few
 from uwbfuse.positioning.wheel_track import WheelTrack, arc_step, arc_steps
 
 NS = 1_000_000_000
@@ -130,3 +132,35 @@ def test_between_few_equals_between_bit_for_bit():
         t_b = (t_a + rng.integers(-20_000_000, 300_000_000, rng.integers(1, 17))).tolist()
         ref = track.between(np.full(len(t_b), t_a, np.int64), np.array(t_b, np.int64))
         assert np.array_equal(_bits(track.between_few(t_a, t_b)), _bits(ref))
+
+
+def test_few_pair_wheel_scale_evidence_equals_the_vectorised_one():
+    """Test that `wheel_scale_evidence`'s Python-float path for a few keyframe pairs gives
+    the vectorised path's numbers bit for bit: tilted and turning poses, residuals inside
+    and beyond the Huber threshold, 1 to 7 pairs, a NaN pose and none."""
+    rng = np.random.default_rng(4)
+    for trial in range(300):
+        n = 1 + trial % 7
+        rot_a, rot_b = np.empty((n, 3, 3)), np.empty((n, 3, 3))
+        for i in range(n):
+            ypr = rng.normal(0.0, [3.0, 0.05, 0.05])
+            ra = gtsam.Rot3.Ypr(*ypr)
+            rot_a[i] = ra.matrix()
+            rot_b[i] = ra.compose(gtsam.Rot3.Ypr(*rng.normal(0.0, [0.1, 0.01, 0.01]))).matrix()
+        trans_a = rng.normal(0.0, 20.0, (n, 3))
+        trans_b = trans_a + rng.normal(0.0, 0.1, (n, 3))
+        delta = rng.normal(0.0, 0.1, (n, 3))
+        root = rng.normal(0.0, 1e-2, (n, 3, 3))
+        cov = root @ np.swapaxes(root, 1, 2) + np.eye(3) * 1e-6
+        scale = rng.uniform(0.9, 1.1, 2)
+        if trial == 5:
+            trans_b[0, 0] = np.nan
+        args = (rot_a, trans_a, rot_b, trans_b, delta, cov, scale, 1.345)
+        few, ref = _wheel_scale_evidence_few(*args), _wheel_scale_evidence_arrays(*args)
+        for a, b in zip(few, ref, strict=True):
+            np.testing.assert_array_equal(a, b)
+    empty = (np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)),
+             np.zeros((0, 3)), np.zeros((0, 3, 3)), np.ones(2), 1.345)
+    for a, b in zip(_wheel_scale_evidence_few(*empty), _wheel_scale_evidence_arrays(*empty),
+                    strict=True):
+        np.testing.assert_array_equal(a, b)

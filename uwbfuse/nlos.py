@@ -396,24 +396,17 @@ def hmm_filter_by_anchor(
     for the step into it (`switch_probabilities`). The inputs are prepared once for all
     ranges (the same numbers as anchor by anchor: every step is elementwise)."""
     d, jl = _filter_inputs(ll_los, ll_nlos, jump_ll)
-    per_range = np.asarray(p_switch, np.float64).tolist() if np.ndim(p_switch) else None
-    g, prior = [0.0] * len(d), [0.0] * len(d)
-    for a, rows in _rows_by_anchor(anchor):
-        out, p_last[a], priors = _filter_chain(
-            [d[i] for i in rows], None if jl is None else [jl[i] for i in rows],
-            float(p_switch) if per_range is None else [per_range[i] for i in rows],
-            p_nlos, p_last[a])
-        for i, x, q in zip(rows, out, priors, strict=True):
-            g[i], prior[i] = x, q
+    keys = np.asarray(anchor).tolist()
+    steps = (np.asarray(p_switch, np.float64).tolist() if np.ndim(p_switch)
+             else [float(p_switch)] * len(d))
+    # the chains interleaved in the ranges' order, each anchor's P(NLOS) carried in a
+    # dict: a keyframe has about one range per anchor, where gathering each anchor's rows
+    # into a chain of its own cost more than its steps
+    p = {a: p_last[a] for a in set(keys)}
+    g, prior = _filter_steps(keys, d, jl, steps, p_nlos, p)
+    for a, x in p.items():
+        p_last[a] = x
     return np.array(g, dtype=np.float64), np.array(prior, dtype=np.float64)
-
-
-def _rows_by_anchor(anchor: np.ndarray) -> list[tuple[int, list[int]]]:
-    """(anchor, its rows in order) for each anchor of `anchor` (N,), anchors ascending."""
-    rows: dict[int, list[int]] = {}
-    for i, a in enumerate(np.asarray(anchor).tolist()):
-        rows.setdefault(a, []).append(i)
-    return sorted(rows.items())
 
 
 def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray | None
@@ -428,27 +421,38 @@ def _filter_inputs(ll_los: np.ndarray, ll_nlos: np.ndarray, jump_ll: np.ndarray 
 
 def _filter_chain(d: list[float], jl: list | None, p_switch: float | list[float],
                   p_nlos: float, p0: float) -> tuple[list[float], float, list[float]]:
-    """`hmm_filter`'s loop over one chain in Python floats (numpy item access was most of
-    its time; the same values); `p_switch` one value or one per range."""
-    out, priors = [], []
-    p = p0
+    """`hmm_filter`'s loop over one chain (`_filter_steps`); `p_switch` one value or one
+    per range."""
     steps = p_switch if isinstance(p_switch, list) else [p_switch] * len(d)
-    for i, q in enumerate(steps):
+    p = {0: p0}
+    out, priors = _filter_steps([0] * len(d), d, jl, steps, p_nlos, p)
+    return out, p[0], priors
+
+
+def _filter_steps(keys: list[int], d: list[float], jl: list | None, steps: list[float],
+                  p_nlos: float, p: dict[int, float]) -> tuple[list[float], list[float]]:
+    """The forward steps of `hmm_filter` in Python floats (numpy item access was most of
+    its time; the same values): range i continues chain `keys[i]` from `p[keys[i]]`, its
+    P(NLOS) so far (updated in place); P(NLOS) and the predicted prior per range."""
+    out, priors = [], []
+    for i, (a, q) in enumerate(zip(keys, steps, strict=True)):
+        pa = p[a]
         t_ln = q * p_nlos  # P(LOS -> NLOS)
         t_nl = q * (1.0 - p_nlos)  # P(NLOS -> LOS)
         if jl is None:
-            prior = (1.0 - q) * p + q * p_nlos
+            prior = (1.0 - q) * pa + q * p_nlos
         else:
             (j00, j01), (j10, j11) = jl[i]
-            to_n = (1.0 - p) * t_ln * j01 + p * (1.0 - t_nl) * j11
-            to_l = (1.0 - p) * (1.0 - t_ln) * j00 + p * t_nl * j10
+            to_n = (1.0 - pa) * t_ln * j01 + pa * (1.0 - t_nl) * j11
+            to_l = (1.0 - pa) * (1.0 - t_ln) * j00 + pa * t_nl * j10
             prior = to_n / max(to_n + to_l, 1e-300)
         prior = min(max(prior, 1e-4), 1.0 - 1e-4)
         priors.append(prior)
         lo = math.log(prior / (1.0 - prior)) + d[i]
-        p = 1.0 / (1.0 + math.exp(-lo))
-        out.append(p)
-    return out, p, priors
+        pa = 1.0 / (1.0 + math.exp(-lo))
+        out.append(pa)
+        p[a] = pa
+    return out, priors
 
 
 def posterior(prior: np.ndarray, ll_los: np.ndarray, ll_nlos: np.ndarray) -> np.ndarray:
@@ -481,37 +485,54 @@ def hmm_smooth_by_anchor(
     `p_switch` one probability or one per range (N,) for the step into it. The inputs are
     prepared once for all ranges (the same numbers as anchor by anchor: every step is
     elementwise)."""
-    e0, e1, tr = _smooth_inputs(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
-    p0_list = [None] * len(e0) if p0 is None else np.asarray(p0, np.float64).tolist()
-    g = [0.0] * len(e0)
-    for _, rows in _rows_by_anchor(anchor):
-        post = _smooth_chain([e0[i] for i in rows], [e1[i] for i in rows],
-                             *([t[i] for i in rows] for t in tr), p_nlos, p0_list[rows[0]])
-        for i, x in zip(rows, post, strict=True):
-            g[i] = x
-    return np.array(g, dtype=np.float64)
+    e0, e1, tr = _smooth_input_arrays(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    n = len(e0)
+    if n == 0:
+        return np.zeros(0)
+    # each anchor's chain is one slice of the rows sorted by anchor (stable: each chain
+    # keeps its time order), gathered by one fancy index per column instead of a list
+    # comprehension per chain and column (that was most of this function's time)
+    anchor = np.asarray(anchor)
+    order = np.argsort(anchor, kind="stable")
+    a_s = anchor[order]
+    cuts = (np.flatnonzero(a_s[1:] != a_s[:-1]) + 1).tolist()
+    cols = [c[order].tolist() for c in (e0, e1, *tr)]
+    p0_s = [None] * n if p0 is None else np.asarray(p0, np.float64)[order].tolist()
+    post: list[float] = []
+    for lo, hi in zip([0, *cuts], [*cuts, n], strict=True):
+        post.extend(_smooth_chain(*(c[lo:hi] for c in cols), p_nlos, p0_s[lo]))
+    g = np.empty(n)
+    g[order] = post
+    return g
 
 
 def _smooth_inputs(
     ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64, p_nlos: float,
     jump_ll: np.ndarray | None,
 ) -> tuple[list[float], list[float], tuple[list[float], ...]]:
-    """`hmm_smooth`'s per-range inputs as Python lists: the two likelihoods scaled to
-    their larger one, and the transition matrix into each range (t00, t01, t10, t11),
-    each entry scaled by the jump evidence if any; `p_switch` one value or (N,)."""
+    """`hmm_smooth`'s per-range inputs as Python lists (`_smooth_input_arrays`)."""
+    e0, e1, tr = _smooth_input_arrays(ll_los, ll_nlos, p_switch, p_nlos, jump_ll)
+    return e0.tolist(), e1.tolist(), tuple(t.tolist() for t in tr)
+
+
+def _smooth_input_arrays(
+    ll_los: np.ndarray, ll_nlos: np.ndarray, p_switch: float | F64, p_nlos: float,
+    jump_ll: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """`hmm_smooth`'s per-range inputs (N,): the two likelihoods scaled to their larger
+    one, and the transition matrix into each range (t00, t01, t10, t11), each entry
+    scaled by the jump evidence if any; `p_switch` one value or (N,)."""
     n = len(ll_los)
-    q = np.asarray(p_switch, np.float64)[..., None, None]  # () or (N,): (1,1) or (N,1,1)
-    a = np.concatenate([np.concatenate([1.0 - q * p_nlos, q * p_nlos], axis=-1),
-                        np.concatenate([q * (1.0 - p_nlos), 1.0 - q * (1.0 - p_nlos)], axis=-1)],
-                       axis=-2)
+    q = np.asarray(p_switch, np.float64)  # () or (N,)
+    qn, ql = q * p_nlos, q * (1.0 - p_nlos)  # into NLOS, into LOS
+    # the transition matrix entry by entry (no (N,2,2) array to build and take apart)
+    a = (1.0 - qn, qn, ql, 1.0 - ql)
     m = np.maximum(ll_los, ll_nlos)
-    e0, e1 = np.exp(ll_los - m).tolist(), np.exp(ll_nlos - m).tolist()
+    e0, e1 = np.exp(ll_los - m), np.exp(ll_nlos - m)
     if jump_ll is None:
-        tr = np.broadcast_to(a, (n, 2, 2))
-    else:
-        tr = a * np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
-    return e0, e1, (tr[:, 0, 0].tolist(), tr[:, 0, 1].tolist(), tr[:, 1, 0].tolist(),
-                    tr[:, 1, 1].tolist())
+        return e0, e1, tuple(np.broadcast_to(x, (n,)) for x in a)
+    j = np.exp(jump_ll - jump_ll.max(axis=(1, 2), keepdims=True))
+    return e0, e1, (a[0] * j[:, 0, 0], a[1] * j[:, 0, 1], a[2] * j[:, 1, 0], a[3] * j[:, 1, 1])
 
 
 def _smooth_chain(e0: list[float], e1: list[float], t00: list[float], t01: list[float],

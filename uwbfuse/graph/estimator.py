@@ -40,6 +40,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+import math
 import time
 from typing import Any
 
@@ -74,7 +75,7 @@ from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.online import OnlineSmoother
 from uwbfuse.graph.review_queue import ReviewQueue
-from uwbfuse.graph.uwb import los_subset_search
+from uwbfuse.graph.uwb import los_subset_search, unique_inverse
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
 from uwbfuse.nlos import (
     NlosModel,
@@ -531,16 +532,18 @@ class GraphEstimator(EstimatorBase):
         holds one, else `default` (m)."""
         # the (anchor, segment) pairs, sorted by anchor then segment (segments >= 0: the
         # builder drops ranges before its first keyframe), as one int64 code each
-        code, inv = np.unique(anchor.astype(np.int64) * _PAIR + seg, return_inverse=True)
-        e_pair = np.full(len(code), np.nan)
-        for i, (a, sg) in enumerate(zip((code // _PAIR).tolist(), (code % _PAIR).tolist(),
-                                        strict=True)):
-            if (a, sg) in b.e_created:
+        code, inv = unique_inverse(anchor.astype(np.int64) * _PAIR + seg)
+        created, value = b.e_created, sm.double
+        e_pair = []
+        for a, sg in zip((code // _PAIR).tolist(), (code % _PAIR).tolist(), strict=True):
+            e = math.nan
+            if (a, sg) in created:
                 try:
-                    e_pair[i] = sm.double(nlos_key(a, sg))
+                    e = value(nlos_key(a, sg))
                 except (RuntimeError, IndexError):
                     pass
-        e_r = e_pair[inv.ravel()]
+            e_pair.append(e)
+        e_r = np.array(e_pair, dtype=np.float64)[inv]
         return np.where(np.isnan(e_r), default, e_r)
 
     def _search_switch(
@@ -551,7 +554,8 @@ class GraphEstimator(EstimatorBase):
         `h`): the LOS and NLOS residuals against the better hypothesis' shifted track and
         NLOS excesses once it has won SEARCH_PERSIST reviews in a row, else as given."""
         u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
-        hyp = los_subset_search(anchor, r_los, u, g_cur, mix)
+        # the shift's moment goes only into the head covariance (`_save_head_covariance`)
+        hyp = los_subset_search(anchor, r_los, u, g_cur, mix, moment=self._head_cov_wanted())
         self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
         better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                   and bool(np.any(hyp.los != hyp.current)))
@@ -632,11 +636,15 @@ class GraphEstimator(EstimatorBase):
         except (RuntimeError, IndexError, ValueError):
             return  # not in this smoother (re-anchored): keep the earlier estimate if any
 
+    def _head_cov_wanted(self) -> bool:
+        """Whether the online head covariance (`_save_head_covariance`) is kept."""
+        return self._with_cov and self.method is Method.ISAM2
+
     def _save_head_covariance(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
         """isam2: the newest solved keyframe's marginal (plus the window's LOS/NLOS spread
         in x, y), carried to each epoch by `estimate()`; its cost (one marginal per
         update) is in `report()`."""
-        if not self._with_cov or self.method is not Method.ISAM2:
+        if not self._head_cov_wanted():
             return
         tic = time.perf_counter()
         k = b.k

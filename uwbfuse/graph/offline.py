@@ -1094,7 +1094,7 @@ def _search_windows(
     ll_l, ll_n = ll_l.copy(), ll_n.copy()
     for w in np.unique(win).tolist():
         sel = np.flatnonzero(win == w)
-        hyp = los_subset_search(a_r[sel], r_los[sel], u[sel], g[sel], mix)
+        hyp = los_subset_search(a_r[sel], r_los[sel], u[sel], g[sel], mix, moment=False)
         if hyp is None or hyp.gain <= BATCH_SEARCH_NATS or not np.any(hyp.los != hyp.current):
             continue
         rl = r_los[sel] - u[sel] @ hyp.delta
