@@ -250,10 +250,12 @@ def anchor_plane(anchors: F64) -> AnchorPlane | None:
     anchors = np.asarray(anchors, dtype=np.float64).reshape(-1, 3)
     if not len(anchors) or float(np.ptp(anchors[:, 2])) < COPLANAR_SPREAD:
         return AnchorPlane(np.zeros(3), np.eye(3), level=True)
-    if off_plane_spread(anchors) >= COPLANAR_SPREAD:
-        return None
     origin = anchors.mean(axis=0)
-    _, _, vt = np.linalg.svd(anchors - origin)
+    centred = anchors - origin
+    _, _, vt = np.linalg.svd(centred)
+    # the heights spread past COPLANAR_SPREAD: `off_plane_spread` is the normal's spread
+    if float(np.ptp(centred @ vt[-1])) >= COPLANAR_SPREAD:
+        return None
     normal = vt[-1] if vt[-1, 2] >= 0.0 else -vt[-1]
     e1 = vt[0]
     return AnchorPlane(origin, np.vstack([e1, np.cross(normal, e1), normal]), level=False)
