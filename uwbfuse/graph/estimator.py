@@ -144,6 +144,7 @@ class GraphEstimator(EstimatorBase):
         self._kf_pred: dict[int, gtsam.Pose3] = {}  # keyframe poses as first predicted
         self._pred_upto = 0
         self._reanchors: list[dict[str, Any]] = []
+        self._rebuilds: list[dict[str, Any]] = []  # smoother rebuilt, nothing lost
         self._update_latency: list[float] = []
         self._init_t: int | None = None
         self._batch: offline.BatchResult | None = None
@@ -349,7 +350,9 @@ class GraphEstimator(EstimatorBase):
         self._pred_upto = b.k + 1
         tic = time.perf_counter()
         try:
-            idx = sm.update(inc)
+            idx, remap = sm.update(inc)
+            if remap is not None:
+                self._smoother_rebuilt(b, remap)
             diverged = self._diverged(sm, b)
             if diverged:
                 self._reanchor(diverged, solved=False)
@@ -374,6 +377,16 @@ class GraphEstimator(EstimatorBase):
         except (RuntimeError, ValueError) as exc:  # GTSAM raises both
             self._reanchor(f"{type(exc).__name__}: {exc}")
         self._update_latency.append(time.perf_counter() - tic)
+
+    def _smoother_rebuilt(self, b: GraphBuilder, remap: dict[int, int]) -> None:
+        """The smoother was rebuilt after GTSAM's marginalisation failure
+        (`OnlineSmoother._rebuild`): move the queued reviews' factor indices to the new
+        smoother's (-1: the factor was summarised, nothing left to replace)."""
+        log.info("iSAM2 marginalisation failed at keyframe %d: smoother rebuilt from its "
+                 "factors (nothing lost)", b.k)
+        self._rebuilds.append({"keyframe": b.k, "t_ns": b.time_of(b.k)})
+        for rb in self._reviews:
+            rb.factors = [[remap.get(i, -1) for i in fs] for fs in rb.factors]
 
     @staticmethod
     def _diverged(sm: OnlineSmoother, b: GraphBuilder) -> str:
@@ -600,7 +613,7 @@ class GraphEstimator(EstimatorBase):
             inc = self._review_inc
             rows = changed.tolist()
             for j in rows:
-                inc.remove.extend(rb.factors[j])
+                inc.remove.extend(i for i in rb.factors[j] if i >= 0)
             slots = b.range_factors(inc, rb.ka, rb.anchor, rb.z, rb.tag_kf, rb.seg, gb, eb, rows)
             inc.replaced.extend((rb, j, pos) for j, pos in zip(rows, slots, strict=True))
             q.set_g(i, changed, gb[changed])
@@ -1103,6 +1116,7 @@ class GraphEstimator(EstimatorBase):
                                     "p95": float(np.percentile(cl, 95) * 1e3),
                                     "max": float(cl.max() * 1e3), "n": len(cl)}
         out["reanchor_events"] = list(self._reanchors)
+        out["smoother_rebuilds"] = list(self._rebuilds)
         out["ranges_reclassified_online"] = self._n_reviewed
         out["los_hypothesis_switches"] = self._n_switches
         rec = b.records.arrays()
