@@ -272,6 +272,9 @@ def test_plaza1_isam2_online_range_scales_settle_as_constants() -> None:
     assert np.ptp(scales) < 0.01
     assert np.all(np.abs(scales - 0.073) < 0.01)
     assert evaluate(res.trajectory, log.ground_truth, max_dt=0.1).ate_2d.rmse < 0.62
+    # GTSAM's fixed-lag marginalisation failed once here (at 634.8 s, session 39): the
+    # smoother is rebuilt from its factors, the graph not re-anchored
+    assert res.report["reanchor_events"] == []
 
 
 def test_plaza2_isam2_holds_a_standstill_fix_until_the_start() -> None:
