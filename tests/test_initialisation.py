@@ -114,6 +114,20 @@ def test_imu_uwb_moving_start_reports_its_uncertainty() -> None:
     assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
 
 
+def test_imu_uwb_slow_start_is_not_a_standstill() -> None:
+    """test that a tag moving off at 0.1 m/s (the room loop: no faster than `min_motion`,
+    too smooth for the IMU's standstill test) is not taken as standing still until its
+    UWB track has moved `min_displacement`: the start lands on the tag, not 0.9 m behind
+    it at the median of a moving "standstill" (measured 0.03 m at 8.9 s)"""
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    log = simulate_with_truth("room", 25.0, seed=0, streams=("imu", "uwb")).log
+    st, init = drive(log, ("imu", "uwb"), Config())
+    assert st is not None, init.last_reason
+    assert not st.still
+    assert errors(log, st)[0] < 0.3
+
+
 def test_uwb_only_track_direction() -> None:
     """test that UWB alone gives position and the track direction once moving"""
     log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 0.0), ROOM, 10.0, seed=1, imu=False,

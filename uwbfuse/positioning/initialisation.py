@@ -457,7 +457,12 @@ class Initialiser:
         )
 
     def _uwb_moving(self, rng: tuple, t_from: int, t_to: int) -> bool:
-        """True when the UWB fixes in [t_from, t_to] show a speed above `min_motion`."""
+        """True when the UWB fixes in [t_from, t_to] show a speed above `min_motion`, or
+        the tag's position has moved `min_displacement` between the first and the last
+        _UWB_TRACK_S of them: a tag that went that far was not standing still, however
+        slowly it went (the room's 0.1 m/s loop is no faster than `min_motion` and too
+        smooth for the IMU's standstill test: its 17 s "standstill" put the start's static
+        fix, the fixes' median over it, 0.9 m behind the tag)."""
         tf, pf, okf = self._fixes(rng, t_from)
         sel = okf & (tf <= t_to / NS_PER_S)
         tf, pf = tf[sel], pf[sel]
@@ -469,7 +474,13 @@ class Initialiser:
         s2 = float(np.sum(res**2) / max(2 * len(tf) - 4, 1))
         sv = math.sqrt(s2 * np.linalg.inv(a_mat.T @ a_mat)[1, 1])
         speed = float(np.linalg.norm(coef[1]))
-        return speed > self.config.init.min_motion and speed > 4.0 * sv
+        # the tag's net move: its position (the fixes' median) over the last _UWB_TRACK_S
+        # against the first (medians: an NLOS fix's jump is no move)
+        head = np.median(pf[tf <= tf[0] + _UWB_TRACK_S, :2], axis=0)
+        tail = np.median(pf[tf >= tf[-1] - _UWB_TRACK_S, :2], axis=0)
+        moved = float(np.linalg.norm(tail - head))
+        return (speed > self.config.init.min_motion and speed > 4.0 * sv) or (
+            moved >= self.config.init.min_displacement)
 
     def provisional(self, t_ns: int) -> InitialState | None:
         """A best-effort state at t_ns before `try_initialise` succeeds, or None.
