@@ -6,7 +6,8 @@ with an `InitialState` at t_ns once the data determine one, else None.
 
 Steps:
 
-1. Standstill at the start (IMU gyro norm and accel std, wheel speed, per `[init]`):
+1. Standstill at the start (IMU gyro norm and accel std, wheel speed, per `[init]`;
+   without wheels the UWB fixes must not have moved either):
    gravity direction gives roll/pitch, the mean gyro gives the gyro bias, the ranges of
    the still period give a static robust multilateration fix. Without a still start,
    roll/pitch come from the mean specific force over the first `level_window` seconds.
