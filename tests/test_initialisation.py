@@ -114,6 +114,25 @@ def test_imu_uwb_moving_start_reports_its_uncertainty() -> None:
     assert abs(math.radians(e_yaw)) < 3.0 * st.yaw_sigma
 
 
+@pytest.mark.parametrize("anchors", ["level", "tilted-down"])
+def test_imu_uwb_slow_start_is_not_a_standstill(anchors: str) -> None:
+    """test that a tag moving off at 0.1 m/s (the room loop: no faster than `min_motion`,
+    too smooth for the IMU's standstill test) is not taken as standing still until its
+    UWB track has moved `min_displacement`: the start lands on the tag, not 0.9 m behind
+    it at the median of a moving "standstill" (level: measured 0.01 m at 8.9 s); and that
+    the free start velocity is seeded from the line through the first fixes (tilted-down,
+    40 s: two noisy 3-D fixes gave a 0.9 m/s climb, the solve a 0.85 m error; now 0.02 m)"""
+    from uwbfuse.sim.simulator import simulate_with_truth
+
+    kw = {} if anchors == "level" else {"anchors": TILTED_ROOMS[anchors]}
+    log = simulate_with_truth("room", 25.0 if anchors == "level" else 40.0, seed=0,
+                              streams=("imu", "uwb"), **kw).log
+    st, init = drive(log, ("imu", "uwb"), Config())
+    assert st is not None, init.last_reason
+    assert not st.still
+    assert errors(log, st)[0] < 0.3
+
+
 def test_uwb_only_track_direction() -> None:
     """test that UWB alone gives position and the track direction once moving"""
     log, _ = make_log(planar_drive((1.0, 1.5), 0.7, 0.0), ROOM, 10.0, seed=1, imu=False,

@@ -6,7 +6,8 @@ with an `InitialState` at t_ns once the data determine one, else None.
 
 Steps:
 
-1. Standstill at the start (IMU gyro norm and accel std, wheel speed, per `[init]`):
+1. Standstill at the start (IMU gyro norm and accel std, wheel speed, per `[init]`;
+   without wheels the UWB fixes must not have moved either):
    gravity direction gives roll/pitch, the mean gyro gives the gyro bias, the ranges of
    the still period give a static robust multilateration fix. Without a still start,
    roll/pitch come from the mean specific force over the first `level_window` seconds.
@@ -457,7 +458,12 @@ class Initialiser:
         )
 
     def _uwb_moving(self, rng: tuple, t_from: int, t_to: int) -> bool:
-        """True when the UWB fixes in [t_from, t_to] show a speed above `min_motion`."""
+        """True when the UWB fixes in [t_from, t_to] show a speed above `min_motion`, or
+        the tag's position has moved `min_displacement` between the first and the last
+        _UWB_TRACK_S of them: a tag that went that far was not standing still, however
+        slowly it went (the room's 0.1 m/s loop is no faster than `min_motion` and too
+        smooth for the IMU's standstill test: its 17 s "standstill" put the start's static
+        fix, the fixes' median over it, 0.9 m behind the tag)."""
         tf, pf, okf = self._fixes(rng, t_from)
         sel = okf & (tf <= t_to / NS_PER_S)
         tf, pf = tf[sel], pf[sel]
@@ -469,7 +475,13 @@ class Initialiser:
         s2 = float(np.sum(res**2) / max(2 * len(tf) - 4, 1))
         sv = math.sqrt(s2 * np.linalg.inv(a_mat.T @ a_mat)[1, 1])
         speed = float(np.linalg.norm(coef[1]))
-        return speed > self.config.init.min_motion and speed > 4.0 * sv
+        # the tag's net move: its position (the fixes' median) over the last _UWB_TRACK_S
+        # against the first (medians: an NLOS fix's jump is no move)
+        head = np.median(pf[tf <= tf[0] + _UWB_TRACK_S, :2], axis=0)
+        tail = np.median(pf[tf >= tf[-1] - _UWB_TRACK_S, :2], axis=0)
+        moved = float(np.linalg.norm(tail - head))
+        return (speed > self.config.init.min_motion and speed > 4.0 * sv) or (
+            moved >= self.config.init.min_displacement)
 
     def provisional(self, t_ns: int) -> InitialState | None:
         """A best-effort state at t_ns before `try_initialise` succeeds, or None.
@@ -867,7 +879,7 @@ class Initialiser:
             z_sigma=z_sigma, solve_v=solve_v, n_k=n_k, n_s=n_s, n_b=n_b)
         i_v, n_unk = problem.i_v, problem.n
 
-        seeds = _heading_seeds(prior, tf, pf, lev0, solve_v, n_unk, i_v)
+        seeds = _heading_seeds(prior, tf, pf, lev0, solve_v, n_unk, i_v, sig)
         sols = solve_seeds(problem, seeds)
         if not sols:
             self.last_reason = "heading solve failed"
@@ -908,15 +920,9 @@ class Initialiser:
             return None
         sel = tf >= min(t_now - _UWB_TRACK_S, tf[-_UWB_TRACK_MIN_FIXES])
         ts, ps = tf[sel] - t_now, pf[sel]
-        # Robust straight-line fit p(t) = p + v t over the recent fixes (IRLS, Huber).
-        a_mat = np.column_stack([np.ones_like(ts), ts])
-        w = np.ones(len(ts))
         sig = self._range_sigma()
-        for _ in range(5):
-            aw = a_mat * w[:, None]
-            coef, *_ = np.linalg.lstsq(aw, ps * w[:, None], rcond=None)
-            res = np.linalg.norm(ps - a_mat @ coef, axis=1)
-            w = np.sqrt(np.where(res < 2 * sig, 1.0, 2 * sig / np.maximum(res, 1e-9)))
+        coef, w = fit_line(ts, ps, sig)
+        a_mat = np.column_stack([np.ones_like(ts), ts])
         p_now, v = coef[0], coef[1]
         resid = ps - a_mat @ coef
         s2 = float(np.sum((w[:, None] * resid[:, :2]) ** 2) / max(2 * len(ts) - 4, 1))
@@ -1175,18 +1181,31 @@ def rival_margin(best_cost: float, rival_costs: list[float]) -> float:
     return 2.0 * (min(rival_costs) - best_cost) if rival_costs else math.inf
 
 
+def fit_line(ts: F64, ps: F64, sig: float) -> tuple[F64, F64]:
+    """Robust straight-line fit p(t) = p + v t to fixes `ps` (K,D) m at times `ts` (K,) s
+    (IRLS, Huber at 2 `sig` m, five rounds): (coef (2,D): p at t = 0 and v m/s, the final
+    square-root weights (K,))."""
+    a_mat = np.column_stack([np.ones_like(ts), ts])
+    w = np.ones(len(ts))
+    for _ in range(5):
+        aw = a_mat * w[:, None]
+        coef, *_ = np.linalg.lstsq(aw, ps * w[:, None], rcond=None)
+        res = np.linalg.norm(ps - a_mat @ coef, axis=1)
+        w = np.sqrt(np.where(res < 2 * sig, 1.0, 2 * sig / np.maximum(res, 1e-9)))
+    return coef, w
+
+
 def _heading_seeds(prior: tuple[F64, float] | None, tf: F64, pf: F64, lev0: F64, solve_v: bool,
-                   n_unk: int, i_v: int) -> list[F64]:
+                   n_unk: int, i_v: int, sig: float) -> list[F64]:
     """The heading solve's start points: _N_SEEDS headings evenly around the circle, the
     base placed so the tag sits at the prior fix (else the first fixes' median, map
-    frame m), and the velocity (when solved) from the first fixes' displacement."""
+    frame m), and the velocity (when solved) from the line through the fixes of the
+    window's first _UWB_TRACK_S (`fit_line`, range sigma `sig` m)."""
     tag_seed = prior[0] if prior is not None else np.median(pf[:3], axis=0)
     v_seed = np.zeros(3)
-    if solve_v and len(tf) >= 2:
-        k = min(len(tf), 10)
-        span = tf[k - 1] - tf[0]
-        if span > 0:
-            v_seed = (pf[k - 1] - pf[0]) / span
+    first = tf <= tf[0] + _UWB_TRACK_S
+    if solve_v and np.ptp(tf[first]) > 0:
+        v_seed = fit_line(tf[first] - tf[0], pf[first], sig)[0][1]
     seeds = []
     for yaw_s in np.linspace(-np.pi, np.pi, _N_SEEDS, endpoint=False):
         x0 = np.zeros(n_unk)
