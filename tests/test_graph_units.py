@@ -452,6 +452,22 @@ def test_nlos_state_persists_for_a_time_whatever_the_radio_rate():
     assert out[1] == pytest.approx(expected, abs=1e-9)
 
 
+def test_excess_mean_step_weighs_nlos_residuals_and_stays_within_zero_and_the_prior():
+    """Test the online NLOS excess mean: the responsibility-weighted mean of the residuals
+    with the prior's mean as n0 ranges, gross residuals (beyond 1 m) left out, and the
+    result held within [0, prior]."""
+    prior = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05)
+    r = np.array([0.1, 0.1, 0.1, 0.1, 5.0, -0.02])
+    g = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])  # the 5 m one is gross, the last LOS
+    m.excess_mean_step(r, g, prior, n0=4.0)
+    assert m.mu_nlos == pytest.approx((4 * 0.1 + 4 * 0.3) / 8)
+    m.excess_mean_step(np.full(10, -0.2), np.ones(10), prior, n0=1.0)
+    assert m.mu_nlos == 0.0  # NLOS only lengthens a range
+    m.excess_mean_step(np.full(10, 0.8), np.ones(10), prior, n0=1.0)
+    assert m.mu_nlos == prior.mu_nlos  # the configured mean is an upper bound
+
+
 def test_wheel_scale_refit_recovers_the_odometry_scale_and_rebuilds_the_factors():
     """Test that `offline._WheelScale` fits (v, omega) scales of 1.03 and 0.98 from a track
     whose odometry read 1/1.03 of the distance and 1/0.98 of the turn, and that `apply`

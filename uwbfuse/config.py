@@ -447,7 +447,8 @@ class NlosConfig(_Section):
         "probability, the wls weights and the ekf/ukf range weighting")
     excess_mean: float = Field(
         0.3, gt=0, description="graph: prior mean of an anchor's NLOS excess over its LOS "
-        "offset, metres (the mean its NLOS states revert to; the states follow the log)")
+        "offset, metres (the mean its NLOS states revert to; the states follow the log); "
+        "the online graph re-estimates it from the log, this an upper bound, batch keeps it")
     excess_slow_sigma: float = Field(
         0.13, gt=0, description="graph: std of the slowly varying NLOS excess of an anchor "
         "(the state), metres")

@@ -181,6 +181,22 @@ class NlosModel:
         p = (np.sum(w_n) + n0 * prior.p_nlos) / (len(g) + n0)
         self.p_nlos = float(np.clip(p, 0.02, 0.9))
 
+    def excess_mean_step(
+        self, r_excess: np.ndarray, g: np.ndarray, prior: NlosModel, n0: float
+    ) -> None:
+        """Re-estimate mu_nlos, the mean NLOS excess over the LOS offset: the
+        responsibility-weighted mean of the residuals `r_excess` (m, range - prediction -
+        the anchor's LOS offset), the prior's mean counting as n0 ranges.
+
+        Kept within [0, prior]: NLOS only lengthens a range, and the configured mean is an
+        upper bound as the configured sigmas are (`m_step`). Residuals beyond 1 m are gross
+        outliers, as in `m_step`.
+        """
+        ok = np.abs(r_excess) < 1.0
+        w = g[ok]
+        mu = (np.sum(w * r_excess[ok]) + n0 * prior.mu_nlos) / (np.sum(w) + n0)
+        self.mu_nlos = float(np.clip(mu, 0.0, prior.mu_nlos))
+
 
 def normal_pdf(x: F64, mean: F64 | float, std: F64 | float) -> F64:
     return np.exp(-0.5 * ((x - mean) / std) ** 2) / (math.sqrt(2 * math.pi) * std)

@@ -1145,7 +1145,9 @@ class GraphBuilder:
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
             g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, p_switch, mix.p_nlos,
                                             self.anchor_p, jump)
-            self._online_m_step(r_los, r_nlos, g)
+            # the excess over the anchor's whole LOS offset (the NLOS states' reference)
+            r_exc = r_los + d_a - self.range_bias[a] if self.with_bias else r_los
+            self._online_m_step(r_los, r_nlos, r_exc, g)
             settled = t >= int(self.start.t_ns) + round(self.g.lag * NS_PER_S)
             if settled.any():
                 self._prequential_choice(r_los[settled], ll_l[settled], ll_n[settled],
@@ -1343,14 +1345,24 @@ class GraphBuilder:
         if newest > seg and self.e_stamp[anchor] > inside:
             self.e_stamp[anchor] = now
 
-    def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, g: np.ndarray) -> None:
+    def _online_m_step(self, r_los: np.ndarray, r_nlos: np.ndarray, r_exc: np.ndarray,
+                       g: np.ndarray) -> None:
         """Adapt the noise model to the last few thousand one-step residuals (prior: the
-        config); sigma_los from their MAD (`robust_los_sigma`)."""
-        window = self._predicted_window.add(np.stack([r_los, r_nlos], axis=1), g)
+        config); sigma_los from their MAD (`robust_los_sigma`); the NLOS excess mean from
+        `r_exc` (m, against the whole LOS offsets) except in batch's seeding pass (batch's
+        EM keeps the configured one).
+
+        The NLOS states revert to D(a) + mu_nlos: at the configured 0.3 m where the log's
+        excess is smaller, the newest states sit high, the short end of a blocked
+        anchor's ranges passes for LOS and pulls the track (docs/results.md, "The NLOS
+        excess mean learnt online", session 39)."""
+        window = self._predicted_window.add(np.stack([r_los, r_nlos, r_exc], axis=1), g)
         if window is None:
             return
         rr, gg = window
         self.mixture.m_step(rr[:, 0], rr[:, 1], gg, self.mixture_prior, n0=200.0)
+        if not self.seeding:
+            self.mixture.excess_mean_step(rr[:, 2], gg, self.mixture_prior, n0=200.0)
         s = robust_los_sigma(rr[:, 0], gg, self.mixture_prior.sigma_los, LOS_SIGMA_PRIOR_RANGES)
         if s is not None:
             self.mixture.sigma_los = s
