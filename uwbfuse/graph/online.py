@@ -51,7 +51,6 @@ class OnlineSmoother:
     def __init__(self, lag_s: float) -> None:
         self.lag_s = lag_s
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag_s, isam2_params())
-        self.rebuilds = 0  # marginalisation failures recovered by `_rebuild`
 
     def update(self, inc: Increment) -> tuple[list[int], dict[int, int] | None]:
         """Add one increment, remove its `remove` factors and re-solve.
@@ -97,7 +96,6 @@ class OnlineSmoother:
         new_stamps = {key: stamps[key] for key in used}
         self.smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam2_params())
         self.smoother.update(graph, values, new_stamps, [])
-        self.rebuilds += 1
         new_index = self.smoother.getISAM2Result().getNewFactorsIndices()
         return {o: int(n) for o, n in zip(old_index, new_index, strict=True)}
 
