@@ -722,11 +722,11 @@ def test_isam2_fits_the_imu_noise_from_the_data_so_far(factory):
     assert online == {"inflation": 3.0, "fits": []}
 
 
-def _imu_noise_by_age(log: SensorLog, monkeypatch) -> tuple[list[tuple[float, float, float]],
-                                                                dict]:
-    """isam2 on `log`: per keyframe interval, its first keyframe's graph age (s) and the
-    inflations (gyroscope, accelerometer white noise, std) of its IMU factor; the report's
-    online IMU noise fits."""
+def _imu_noise_by_age(log: SensorLog, monkeypatch, config: Config | None = None
+                      ) -> tuple[list[tuple[float, float, float]], dict]:
+    """isam2 on `log` (default config): per keyframe interval, its first keyframe's graph
+    age (s) and the inflations (gyroscope, accelerometer white noise, std) of its IMU factor;
+    the report's online IMU noise fits."""
     from uwbfuse.graph.builder import GraphBuilder
 
     imu = Config().imu
@@ -742,29 +742,37 @@ def _imu_noise_by_age(log: SensorLog, monkeypatch) -> tuple[list[tuple[float, fl
         return inc
 
     monkeypatch.setattr(GraphBuilder, "next", next_)
-    return seen, estimate(log, Method.ISAM2, Config()).report["online_imu_noise"]
+    return seen, estimate(log, Method.ISAM2, config or Config()).report["online_imu_noise"]
 
 
+@pytest.mark.parametrize("lag", [5.0, 10.0])
 def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factory,
-                                                                           monkeypatch):
+                                                                           monkeypatch, lag):
     """Test that with wheels the online graph's IMU factors start loose (256x), keep the
-    gyroscope's white noise at its configured density from one lag (5 s) after the start
-    until the first noise fit, and take the fitted inflation for both after it; without
+    gyroscope's white noise at its configured density from GYRO_HOLD_AGE_S (3 s) after the
+    start until the first noise fit, whatever the lag (at lag 10 one lag after the start
+    was the first fit itself), and take the fitted inflation for both after it; without
     wheels the gyroscope stays with the rest (docs/results.md, "A wheel slip before the
     first IMU noise fit") and both start at 64x, not 256x: the IMU is then the only motion
     model (docs/results.md, "The online IMU noise without wheels starts at 64x")."""
-    lag = Config().graph.lag
-    seen, online = _imu_noise_by_age(factory.log, monkeypatch)
+    from uwbfuse.constants import GYRO_HOLD_AGE_S
+
+    cfg = Config()
+    cfg.graph.lag = lag
+    seen, online = _imu_noise_by_age(factory.log, monkeypatch, cfg)
     first = online["fits"][0]["graph_age_s"]
     f = online["fits"][0]["inflation"]
-    start = [(g, a) for t, g, a in seen if t < lag]
-    held = [(g, a) for t, g, a in seen if lag <= t < first]
+    start = [(g, a) for t, g, a in seen if t < GYRO_HOLD_AGE_S]
+    held = [(g, a) for t, g, a in seen if GYRO_HOLD_AGE_S <= t < first]
     after = [(g, a) for t, g, a in seen if first <= t < online["fits"][1]["graph_age_s"]]
-    assert start and held and after
+    assert start and after
+    assert len(held) >= 0.5 * (first - GYRO_HOLD_AGE_S) * cfg.graph.keyframe_rate
     assert np.allclose(start, 256.0)
     assert np.allclose([g for g, _ in held], 1.0) and np.allclose([a for _, a in held], 256.0)
     assert np.allclose(after, f)
     monkeypatch.undo()
+    if lag != Config().graph.lag:
+        return
     seen, online = _imu_noise_by_age(_drop(factory.log, "wheel"), monkeypatch)
     assert all(g == pytest.approx(a) for _, g, a in seen)
     first = online["fits"][0]["graph_age_s"]
@@ -917,3 +925,4 @@ def test_nlos_switch_time_sets_how_long_the_online_classes_persist():
         assert res.range_classes is not None
         flips[st] = _class_flips(res.range_classes)
     assert flips[0.02] > flips[2.0] > flips[60.0], flips
+
