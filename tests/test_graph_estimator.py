@@ -749,7 +749,7 @@ def _imu_noise_by_age(log: SensorLog, monkeypatch, config: Config | None = None
 def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factory,
                                                                            monkeypatch, lag):
     """Test that with wheels the online graph's IMU factors start loose (256x), keep the
-    gyroscope's white noise at its configured density from GYRO_HOLD_AGE_S (3 s) after the
+    gyroscope's white noise at its configured density from GYRO_HOLD_AGE_S (5 s) after the
     start until the first noise fit, whatever the lag (at lag 10 one lag after the start
     was the first fit itself), and take the fitted inflation for both after it; without
     wheels the gyroscope stays with the rest (docs/results.md, "A wheel slip before the
