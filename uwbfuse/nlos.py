@@ -153,8 +153,9 @@ class NlosModel:
     @property
     def class_change_time(self) -> float:
         """Mean time between changes of an anchor's LOS/NLOS class, s: its class is
-        redrawn every `switch_time` on average, at the stationary rate p_nlos, and a redraw
-        changes it with probability 2 p (1 - p) (p held within [0.02, 0.98])."""
+        redrawn every `switch_time` on average, NLOS with probability p_nlos, so a redraw
+        changes it with probability 2 p (1 - p) over the stationary classes (p held within
+        [0.02, 0.98], as `graph.uwb.los_subset_search` holds it)."""
         p = min(max(self.p_nlos, 0.02), 0.98)
         return self.switch_time / (2.0 * p * (1.0 - p))
 
