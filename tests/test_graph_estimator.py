@@ -722,11 +722,11 @@ def test_isam2_fits_the_imu_noise_from_the_data_so_far(factory):
     assert online == {"inflation": 3.0, "fits": []}
 
 
-def _imu_noise_by_age(log: SensorLog, monkeypatch) -> tuple[list[tuple[float, float, float]],
-                                                                dict]:
-    """isam2 on `log`: per keyframe interval, its first keyframe's graph age (s) and the
-    inflations (gyroscope, accelerometer white noise, std) of its IMU factor; the report's
-    online IMU noise fits."""
+def _imu_noise_by_age(log: SensorLog, monkeypatch, config: Config | None = None
+                      ) -> tuple[list[tuple[float, float, float]], dict]:
+    """isam2 on `log` (default config): per keyframe interval, its first keyframe's graph
+    age (s) and the inflations (gyroscope, accelerometer white noise, std) of its IMU factor;
+    the report's online IMU noise fits."""
     from uwbfuse.graph.builder import GraphBuilder
 
     imu = Config().imu
@@ -742,29 +742,37 @@ def _imu_noise_by_age(log: SensorLog, monkeypatch) -> tuple[list[tuple[float, fl
         return inc
 
     monkeypatch.setattr(GraphBuilder, "next", next_)
-    return seen, estimate(log, Method.ISAM2, Config()).report["online_imu_noise"]
+    return seen, estimate(log, Method.ISAM2, config or Config()).report["online_imu_noise"]
 
 
+@pytest.mark.parametrize("lag", [5.0, 10.0])
 def test_isam2_holds_the_gyroscope_against_wheel_slip_until_the_first_fit(factory,
-                                                                           monkeypatch):
+                                                                           monkeypatch, lag):
     """Test that with wheels the online graph's IMU factors start loose (256x), keep the
-    gyroscope's white noise at its configured density from one lag (5 s) after the start
-    until the first noise fit, and take the fitted inflation for both after it; without
+    gyroscope's white noise at its configured density from GYRO_HOLD_AGE_S (5 s) after the
+    start until the first noise fit, whatever the lag (at lag 10 one lag after the start
+    was the first fit itself), and take the fitted inflation for both after it; without
     wheels the gyroscope stays with the rest (docs/results.md, "A wheel slip before the
     first IMU noise fit") and both start at 64x, not 256x: the IMU is then the only motion
     model (docs/results.md, "The online IMU noise without wheels starts at 64x")."""
-    lag = Config().graph.lag
-    seen, online = _imu_noise_by_age(factory.log, monkeypatch)
+    from uwbfuse.constants import GYRO_HOLD_AGE_S
+
+    cfg = Config()
+    cfg.graph.lag = lag
+    seen, online = _imu_noise_by_age(factory.log, monkeypatch, cfg)
     first = online["fits"][0]["graph_age_s"]
     f = online["fits"][0]["inflation"]
-    start = [(g, a) for t, g, a in seen if t < lag]
-    held = [(g, a) for t, g, a in seen if lag <= t < first]
+    start = [(g, a) for t, g, a in seen if t < GYRO_HOLD_AGE_S]
+    held = [(g, a) for t, g, a in seen if GYRO_HOLD_AGE_S <= t < first]
     after = [(g, a) for t, g, a in seen if first <= t < online["fits"][1]["graph_age_s"]]
-    assert start and held and after
+    assert start and after
+    assert len(held) >= 0.5 * (first - GYRO_HOLD_AGE_S) * cfg.graph.keyframe_rate
     assert np.allclose(start, 256.0)
     assert np.allclose([g for g, _ in held], 1.0) and np.allclose([a for _, a in held], 256.0)
     assert np.allclose(after, f)
     monkeypatch.undo()
+    if lag != Config().graph.lag:
+        return
     seen, online = _imu_noise_by_age(_drop(factory.log, "wheel"), monkeypatch)
     assert all(g == pytest.approx(a) for _, g, a in seen)
     first = online["fits"][0]["graph_age_s"]
@@ -917,3 +925,92 @@ def test_nlos_switch_time_sets_how_long_the_online_classes_persist():
         assert res.range_classes is not None
         flips[st] = _class_flips(res.range_classes)
     assert flips[0.02] > flips[2.0] > flips[60.0], flips
+
+
+def test_review_search_holds_an_adopted_hypothesis_and_looks_at_its_span_only(monkeypatch):
+    """Test the online review's LOS/NLOS search (`_search_switch`): a better hypothesis is
+    adopted after SEARCH_PERSIST reviews in a row (the ranges of the span against its
+    shifted track), is held while the search still finds it the best once it is the
+    current classes (without a hold, EM against the unshifted track reverted it at the
+    next review and the search re-adopted it three reviews later, a limit cycle:
+    docs/results.md, session 40), is let go when another is best, and never touches the
+    ranges outside the span."""
+    from types import SimpleNamespace
+
+    from uwbfuse.constants import SEARCH_PERSIST
+    from uwbfuse.graph import estimator as est_mod
+    from uwbfuse.graph.uwb import LosHypothesis
+    from uwbfuse.nlos import NlosModel
+    from uwbfuse.streams import AnchorMap
+
+    anchors = AnchorMap(("a", "b"), np.array([[0.0, 0.0, 2.0], [10.0, 0.0, 2.0]]))
+    est = est_mod.make(Method.ISAM2, Config(), anchors, frozenset({"uwb"}))
+    mix = NlosModel.from_config(Config())
+    n = 8
+    anchor = np.arange(n) % 2
+    p = np.column_stack([np.full(n, 5.0), np.full(n, 3.0), np.full(n, 2.0)])
+    h = np.linalg.norm(p - anchors.positions[anchor], axis=1)
+    r_los, r_nlos = np.full(n, 0.2), np.full(n, -0.1)
+    span = np.arange(n) >= 4  # the newest four ranges
+    u = (p - anchors.positions[anchor])[:, :2] / h[:, None]
+    delta = np.array([0.1, -0.05])
+    ids = np.array([0, 1])
+    los_b = np.array([True, False])  # anchor b NLOS with a 0.25 m excess
+
+    def hyp(current: list[bool], los: np.ndarray = los_b, gain: float = 20.0):
+        return LosHypothesis(ids, los, np.array(current), delta,
+                             np.where(los, 0.0, 0.25), gain)
+
+    seen: list[int] = []
+    script = iter([hyp([True, True])] * SEARCH_PERSIST            # better: adopted on the 3rd
+                  + [hyp([True, False], gain=0.0)]                # adopted, now current: held
+                  + [hyp([True, True], np.array([True, True]), 0.0)])  # another best: let go
+
+    def search(a, r, u_, g, model, moment=True):
+        seen.append(len(a))
+        return next(script)
+
+    monkeypatch.setattr(est_mod, "los_subset_search", search)
+    b = SimpleNamespace(range_bias=np.zeros(2))
+    out = [est._search_switch(b, mix, anchor, p, h, r_los, r_nlos, np.zeros(n), span)
+           for _ in range(SEARCH_PERSIST + 2)]
+    assert seen == [4] * len(out)
+    shifted = r_los[span] - u[span] @ delta
+    for i, (rl, rn) in enumerate(out):
+        np.testing.assert_array_equal(rl[~span], r_los[~span])
+        np.testing.assert_array_equal(rn[~span], r_nlos[~span])
+        if i in (SEARCH_PERSIST - 1, SEARCH_PERSIST):  # adopted, then held
+            np.testing.assert_allclose(rl[span], shifted)
+            np.testing.assert_allclose(rn[span], shifted - np.where(anchor[span] == 1,
+                                                                    0.25, mix.mu_nlos))
+        else:
+            np.testing.assert_array_equal(rl, r_los)
+            np.testing.assert_array_equal(rn, r_nlos)
+
+
+def test_review_search_span_does_not_grow_with_the_lag(monkeypatch):
+    """Test that the review's LOS/NLOS search looks at the ranges of the anchors' mean time
+    between class changes (`NlosModel.class_change_time`), not at the whole lag window: at
+    lag 10 it took twice the lag-5 window, where one class per anchor and one rigid shift
+    held too seldom (docs/results.md, session 40)."""
+    from uwbfuse.graph import estimator as est_mod
+
+    log = simulate_with_truth("warehouse", 30.0, 0).log
+    orig = est_mod.los_subset_search
+    sizes: dict[float, list[int]] = {}
+
+    for lag in (5.0, 10.0):
+        seen = sizes.setdefault(lag, [])
+
+        def search(a, *args, seen=seen, **kwargs):
+            seen.append(len(a))
+            return orig(a, *args, **kwargs)
+
+        monkeypatch.setattr(est_mod, "los_subset_search", search)
+        cfg = Config()
+        cfg.graph.lag = lag
+        estimate(log, Method.ISAM2, cfg, covariance=False)
+    assert sizes[5.0] and sizes[10.0]
+    # the window has filled by mid-log at either lag: the late searches' sizes
+    late5, late10 = np.median(sizes[5.0][-20:]), np.median(sizes[10.0][-20:])
+    assert late10 < 1.4 * late5

@@ -652,3 +652,25 @@ def test_unique_inverse_equals_numpys():
         np.testing.assert_array_equal(inv, ref_inv.ravel())
         assert code.dtype == ref_code.dtype and inv.dtype == ref_inv.dtype
         np.testing.assert_array_equal(code[inv], x)
+
+
+def test_class_change_time_is_the_mean_time_between_class_changes():
+    """Test `NlosModel.class_change_time`: redraws every switch_time on average, each
+    changing the class with probability 2 p (1 - p) at the stationary rate p; checked
+    against a simulated two-state chain."""
+    m = NlosModel(0.05, 0.07, 0.3, 0.13, 5.0, 1.0, 0.3, 0.05, switch_time=2.0)
+    assert m.class_change_time == pytest.approx(2.0 / (2 * 0.3 * 0.7))
+    rng = np.random.default_rng(1)
+    dt, n = 0.1, 400_000
+    redraw = rng.random(n) < 1.0 - math.exp(-dt / m.switch_time)
+    draw = rng.random(n) < m.p_nlos
+    state = np.empty(n, bool)
+    s = False
+    for i in range(n):
+        s = draw[i] if redraw[i] else s
+        state[i] = s
+    changes = np.count_nonzero(state[1:] != state[:-1])
+    assert n * dt / changes == pytest.approx(m.class_change_time, rel=0.05)
+    # p is held within [0.02, 0.98]: no infinite span where the log has no NLOS
+    m.p_nlos = 0.0
+    assert m.class_change_time == pytest.approx(2.0 / (2 * 0.02 * 0.98))

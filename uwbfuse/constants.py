@@ -169,6 +169,12 @@ IMU_INFLATION_MAX_LOG2 = 8.0
 # motion (64): the loosest IMU measured on a real log (ISAS-Walk1's handheld IMU fits
 # 67-73x); the maximum would leave the vehicle without a motion model until the fit
 IMU_INFLATION_START_NO_WHEELS_LOG2 = 6.0
+# s of graph age: with wheels, the gyroscope's white noise is held at its configured density
+# from here until the first IMU noise fit (`GraphBuilder._hold_gyro`). Held earlier, a tight
+# gyroscope with the start's first keyframes left iSAM2 indeterminate (room seed 0: from 0-1
+# s; backdated by 10 s, from 3 s); 5 s: session 20's, where no start measured failed. Not the
+# lag: at lag 10 the hold began with the first fit (10 s) (docs/results.md, session 40)
+GYRO_HOLD_AGE_S = 5.0
 # m/s^2/sqrt(Hz): the constant-velocity prior's acceleration density before the log tells
 # it (`graph.motion_accel_density = "auto"`): a walker or pushed trolley changes its speed
 # by about 1 m/s within a second

@@ -150,6 +150,15 @@ class NlosModel:
         """Std of the per-segment pull of a chained NLOS state towards D + mu, m."""
         return self.sigma_slow * math.sqrt(2.0 * self.tau_s / self.segment_s)
 
+    @property
+    def class_change_time(self) -> float:
+        """Mean time between changes of an anchor's LOS/NLOS class, s: its class is
+        redrawn every `switch_time` on average, NLOS with probability p_nlos, so a redraw
+        changes it with probability 2 p (1 - p) over the stationary classes (p held within
+        [0.02, 0.98], as `graph.uwb.los_subset_search` holds it)."""
+        p = min(max(self.p_nlos, 0.02), 0.98)
+        return self.switch_time / (2.0 * p * (1.0 - p))
+
     def log_likelihoods(
         self, r_los: np.ndarray, r_nlos: np.ndarray, var_nlos: np.ndarray | float
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -32,6 +32,7 @@ import numpy as np
 from uwbfuse.config import Config, GraphConfig
 from uwbfuse.constants import (
     ANCHOR_SIGMA,
+    GYRO_HOLD_AGE_S,
     IMU_INFLATION_MAX_LOG2,
     IMU_INFLATION_START_NO_WHEELS_LOG2,
     LOG_OUTLIER,
@@ -383,7 +384,7 @@ class GraphBuilder:
         self.imu_inflation = (2.0 ** start_log2 if fit
                               else 1.0 if setting == "auto" or self.cv_motion
                               else float(setting))
-        # with wheels, from one lag after the start until the first fit, the gyroscope's
+        # with wheels, from GYRO_HOLD_AGE_S after the start until the first fit, the gyroscope's
         # white noise is held at its configured density (`_hold_gyro`); `gyro_hold`: still
         # to come (None: never or over)
         self.gyro_hold: bool | None = False if fit and self.has_wheel else None
@@ -449,17 +450,18 @@ class GraphBuilder:
         self.pim_params = self._preintegration_params()
 
     def _hold_gyro(self) -> None:
-        """With wheels and the IMU noise still to be fitted (`auto`), from one lag after
-        the start: the IMU factors keep the loose start inflation but the gyroscope's white
-        noise at its configured density, until the first fit (`set_imu_inflation`).
+        """With wheels and the IMU noise still to be fitted (`auto`), from GYRO_HOLD_AGE_S
+        after the start: the IMU factors keep the loose start inflation but the gyroscope's
+        white noise at its configured density, until the first fit (`set_imu_inflation`).
 
         The wheel factor's robust kernel rejects a slip only against an independent yaw
         rate, which a gyroscope at 256x its noise does not give: a slip in the graph's
         first 10 s turned the track (factory seed 2: two slips of -40 and -37 degrees,
         0.15 m ATE). Not from the start: a tight gyroscope with the start's keyframes
         in the window left iSAM2 indeterminate (room seed 0; docs/results.md, "A wheel slip
-        before the first IMU noise fit")."""
-        if self.gyro_hold is False and self.k >= 0 and self.stamp(self.k) >= self.g.lag:
+        before the first IMU noise fit"); not from one lag, which at lag 10 is the first
+        fit's own time (docs/results.md, session 40)."""
+        if self.gyro_hold is False and self.k >= 0 and self.stamp(self.k) >= GYRO_HOLD_AGE_S:
             self.gyro_hold = True
             self.pim_params = self._preintegration_params()
 

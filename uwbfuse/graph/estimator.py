@@ -156,6 +156,8 @@ class GraphEstimator(EstimatorBase):
         self._n_switches = 0
         self._hyp_key: tuple | None = None
         self._hyp_count = 0
+        # the hypothesis (anchors, LOS flags) the search adopted, while it holds it
+        self._adopted: tuple | None = None
         self._batch_wall = 0.0
         self._wheel_offset_s: float | None = None  # batch: the wheel time offset chosen, s
         # batch: the wheel noise factors (translation, heading) fitted, times the configured
@@ -472,10 +474,12 @@ class GraphEstimator(EstimatorBase):
         next update (iSAM2 factor removal).
 
         Before that, `uwb.los_subset_search` tests every LOS/NLOS assignment of the
-        window's anchors with a rigid shift of the window's track: when another assignment
+        window's newer ranges (`_search_switch`: those within the anchors' mean time
+        between class changes) with a rigid shift of their track: when another assignment
         beats the current one by SEARCH_SWITCH_NATS in SEARCH_PERSIST consecutive reviews,
-        the window is classified against the shifted track and its NLOS excesses instead
-        (an escape from the local optimum that EM alone stays in).
+        those ranges are classified against the shifted track and its NLOS excesses
+        instead, while the search still finds it the best (an escape from the local
+        optimum that EM alone stays in).
         """
         now = b.time_of(b.k)
         queued, poses = self._reviewable(sm, b, now)
@@ -502,7 +506,9 @@ class GraphEstimator(EstimatorBase):
         r_nlos = z - h - e
         g_cur = cols["g"][rows].copy()
         if REVIEW_SEARCH:
-            r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur)
+            span = t >= now - round(mix.class_change_time * NS_PER_S)
+            r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur,
+                                                span)
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         ll_n = ll_n + cols["evidence"][rows]  # the classifier's
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
@@ -562,27 +568,49 @@ class GraphEstimator(EstimatorBase):
     def _search_switch(
         self, b: GraphBuilder, mix: NlosModel, anchor: np.ndarray, p: np.ndarray,
         h: np.ndarray, r_los: np.ndarray, r_nlos: np.ndarray, g_cur: np.ndarray,
+        span: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """`uwb.los_subset_search` over the window (tag positions `p`, predicted ranges
-        `h`): the LOS and NLOS residuals against the better hypothesis' shifted track and
-        NLOS excesses once it has won SEARCH_PERSIST reviews in a row, else as given."""
-        u = (p - self.anchors.positions[anchor])[:, :2] / np.maximum(h, 1e-6)[:, None]
+        """`uwb.los_subset_search` over the ranges of the window at `span` (bool mask: those
+        newer than the anchors' mean time between class changes, `NlosModel.
+        class_change_time`; tag positions `p`, predicted ranges `h`): the LOS and NLOS
+        residuals of those ranges against the better hypothesis' shifted track and NLOS
+        excesses once it has won SEARCH_PERSIST reviews in a row, and for as long after as
+        the search still finds it the best; else as given.
+
+        The span: the search takes each anchor as in one class with one excess, and the
+        track as shifted rigidly, over it; over a whole 10 s lag window that held too seldom
+        and the switches it adopted were mostly wrong. The hold: an adopted hypothesis
+        becomes the current classes, and if the smoother has not yet moved the track to
+        it, EM against the current track reverted it at the next review and the search
+        adopted it again SEARCH_PERSIST reviews later, a limit cycle of factor replacements
+        (docs/results.md, session 40)."""
+        a_s = anchor[span]
+        u = (p[span] - self.anchors.positions[a_s])[:, :2] / np.maximum(h[span], 1e-6)[:, None]
         # the shift's moment goes only into the head covariance (`_save_head_covariance`)
-        hyp = los_subset_search(anchor, r_los, u, g_cur, mix, moment=self._head_cov_wanted())
+        hyp = los_subset_search(a_s, r_los[span], u, g_cur[span], mix,
+                                moment=self._head_cov_wanted())
         self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
         better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                   and bool(np.any(hyp.los != hyp.current)))
-        key = (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist())) if better else None
+        found = None if hyp is None else (tuple(hyp.anchors.tolist()), tuple(hyp.los.tolist()))
+        key = found if better else None
         self._hyp_count = self._hyp_count + 1 if better and key == self._hyp_key else 1
         self._hyp_key = key
-        if not (better and self._hyp_count >= SEARCH_PERSIST):
+        held = not better and found is not None and found == self._adopted
+        if not held:
+            self._adopted = None
+        if not (held or (better and self._hyp_count >= SEARCH_PERSIST)):
             return r_los, r_nlos
         assert hyp is not None
-        self._n_switches += 1
-        r_los = r_los - u @ hyp.delta
+        if not held:
+            self._n_switches += 1
+            self._adopted = found
+        r_los, r_nlos = r_los.copy(), r_nlos.copy()
+        r_los[span] -= u @ hyp.delta
         exc = np.full(len(b.range_bias), mix.mu_nlos)
         exc[hyp.anchors] = np.where(hyp.los, mix.mu_nlos, hyp.excess)
-        return r_los, r_los - exc[anchor]
+        r_nlos[span] = r_los[span] - exc[a_s]
+        return r_los, r_nlos
 
     def _replace_moved(self, b: GraphBuilder, queued: list[int], now: int,
                        g: np.ndarray, g_cur: np.ndarray, e: np.ndarray,
