@@ -108,17 +108,22 @@ class RestEvidence:
         n = (self._imu_last - self._block0) // _BLOCK_NS
         if n <= self._done:
             return
-        t = np.concatenate([c[0] for c in self._imu])
-        g = np.concatenate([c[1] for c in self._imu])
-        a = np.concatenate([c[2] for c in self._imu])
         ends = self._block0 + _BLOCK_NS * np.arange(self._done + 1, n + 1, dtype=np.int64)
-        # a block without IMU samples (a dropout) says nothing: not still
-        filled = np.diff(np.searchsorted(t, np.concatenate([[ends[0] - _BLOCK_NS], ends]),
-                                         side="right")) >= 2
-        still = (filled & block_still(t, g, ends, None, self.cfg.standstill_gyro_max)
-                 & block_still(t, a, ends, None, self.cfg.standstill_accel_std_max))
+        wheels = np.array([self._wheels_still(end) for end in ends.tolist()])
+        if wheels.any():  # the IMU's tests only where the wheels leave a block still
+            t = np.concatenate([c[0] for c in self._imu])
+            g = np.concatenate([c[1] for c in self._imu])
+            a = np.concatenate([c[2] for c in self._imu])
+            self._imu = [(t, g, a)]
+            # a block without IMU samples (a dropout) says nothing: not still
+            filled = np.diff(np.searchsorted(
+                t, np.concatenate([[ends[0] - _BLOCK_NS], ends]), side="right")) >= 2
+            still = (wheels & filled
+                     & block_still(t, g, ends, None, self.cfg.standstill_gyro_max)
+                     & block_still(t, a, ends, None, self.cfg.standstill_accel_std_max))
+        else:
+            still = wheels
         for end, ok in zip(ends.tolist(), still.tolist(), strict=True):
-            ok = ok and self._wheels_still(end)
             if not ok:
                 self._run = None
             elif self._run is None:
@@ -129,8 +134,10 @@ class RestEvidence:
         while self._ends and self._ends[0] < self._ends[-1] - REST_HISTORY_S * NS_PER_S:
             self._ends.popleft()
             self._runs.popleft()
-        keep = int(np.searchsorted(t, ends[-1], side="right"))
-        self._imu = [(t[keep:], g[keep:], a[keep:])]
+        # the samples of blocks to come, without joining the chunks (one a batch)
+        end = int(ends[-1])
+        self._imu = [(c[0][k:], c[1][k:], c[2][k:]) for c in self._imu
+                     if (k := int(np.searchsorted(c[0], end, side="right"))) < len(c[0])]
 
     def _wheels_still(self, end: int) -> bool:
         """No wheel sample in the block ending at `end` (ns) moving; True without wheels."""
@@ -143,8 +150,8 @@ class RestEvidence:
 
     def _run_at(self, t: int) -> int | None:
         """Start (ns) of the still run that the last block judged before `t` belongs to;
-        None where that block is not the one just before t's (an IMU dropout: no verdict)."""
-        self._judge()
+        None where that block is not the one just before t's (an IMU dropout: no verdict).
+        The blocks must have been judged (`_judge`)."""
         i = bisect.bisect_right(self._ends, t) - 1
         if i < 0 or t - self._ends[i] > _BLOCK_NS:
             return None
@@ -187,6 +194,7 @@ class RestEvidence:
         `sigma_los`: the model's LOS std (m) the evidence is weighed with."""
         w = np.ones(len(t_ns))
         window = round(self.cfg.standstill_window * NS_PER_S)
+        self._judge()  # the IMU and wheel samples so far: the same for every range given
         rows = zip(np.asarray(t_ns).tolist(), np.asarray(anchor).tolist(),
                    np.asarray(z, np.float64).tolist(), strict=True)
         for i, (t, a, zi) in enumerate(rows):
