@@ -157,7 +157,7 @@ def test_isas_walk_handheld_imu_and_uwb(method: Method, bound: float) -> None:
 
 # measured (session 40), ISAS-Walk1's last 5 s (the stick in its holder): ranges whose
 # online P(NLOS) is under 0.05 or over 0.95: main 0.92 (two anchors called NLOS at 0.86 and
-# 0.89 on average), with the standstill weights 0.53; isam2 se3 0.1587 -> 0.1525 (mean of
+# 0.89 on average), with the standstill weights 0.53; isam2 se3 0.1587, with them 0.1525 (mean of
 # four runs, ranges perturbed by 0.2 mm); 174 ranges weighed
 def test_isas_isam2_weighs_the_ranges_of_a_standstill_as_one() -> None:
     """Test that isam2 on ISAS-Walk1 finds the final standstill from its IMU and weighs
