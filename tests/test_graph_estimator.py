@@ -966,13 +966,15 @@ def test_review_search_holds_an_adopted_hypothesis_and_looks_at_its_span_only(mo
                   + [hyp([True, False], gain=0.0)]                # adopted, now current: held
                   + [hyp([True, True], np.array([True, True]), 0.0)])  # another best: let go
 
-    def search(a, r, u_, g, model, moment=True):
+    def search(a, r, u_, g, model, moment=True, weights=None):
         seen.append(len(a))
+        assert weights is not None and len(weights) == len(a)
         return next(script)
 
     monkeypatch.setattr(est_mod, "los_subset_search", search)
     b = SimpleNamespace(range_bias=np.zeros(2))
-    out = [est._search_switch(b, mix, anchor, p, h, r_los, r_nlos, np.zeros(n), span)
+    out = [est._search_switch(b, mix, anchor, p, h, r_los, r_nlos, np.zeros(n), span,
+                              np.ones(n))
            for _ in range(SEARCH_PERSIST + 2)]
     assert seen == [4] * len(out)
     shifted = r_los[span] - u[span] @ delta

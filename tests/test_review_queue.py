@@ -16,7 +16,7 @@ def _batch(rng: np.random.Generator, ka: int) -> ReviewBatch:
     return ReviewBatch(ka, rng.integers(0, 4, n), rng.normal(5.0, 1.0, n),
                        rng.integers(0, 9, n), rng.normal(size=(n, 3)), rng.uniform(size=n),
                        rng.uniform(size=n), ka, t_ns=np.sort(rng.integers(0, 10**9, n)),
-                       evidence=rng.normal(size=n))
+                       evidence=rng.normal(size=n), ess=rng.uniform(size=n))
 
 
 def test_columns_follow_appends_drops_and_responsibility_updates():

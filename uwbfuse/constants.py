@@ -437,6 +437,18 @@ LIVE_LATENCY_KEPT = 10_000
 # 1/m^2 or 1/rad^2: information left in the directions a planar pose factor does not
 # constrain: small enough to be no constraint, large enough for a PD information
 NO_INFORMATION = 1e-8
+# successive-range pairs of a standstill before its radio noise s_w counts (fewer: every
+# range weighs 1, `graph.rest`): the median of 20 pins s_w to about 30 %
+REST_MIN_PAIRS = 20
+# s_w is taken again each time the standstill's pairs grow by this factor: a work bound (an
+# hour's rest would sort its pairs at every keyframe)
+REST_RHO_REFRESH = 1.25
+# standard errors of a standstill's range slope (per anchor, against its radio noise) that
+# call it a glide: a two-sided test at about 0.3 %
+REST_TREND_Z = 3.0
+# s: the IMU blocks' still verdicts kept for the ranges still to come (a keyframe's ranges
+# lag the newest IMU sample by a keyframe period and the data's batching, well under this)
+REST_HISTORY_S = 10.0
 
 # ---------------------------------------------------------------------------------------
 # Kalman filters (`filters`)

@@ -60,6 +60,7 @@ from uwbfuse.graph import imu as imu_mod
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.noise import diagonal, pose_sigmas, range_noise_maker, robust_weight
 from uwbfuse.graph.pose_factor import PoseQueue, pose_factors
+from uwbfuse.graph.rest import RestEvidence
 from uwbfuse.graph.uwb import (
     los_bias_key,
     nlos_state_factors,
@@ -135,6 +136,8 @@ class ReviewBatch:
     t_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # range stamps
     # the learned classifier's NLOS log-odds per range (nats; 0 without a classifier)
     evidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # each range's share of one independent range's evidence (`rest.RestEvidence`)
+    ess: np.ndarray = field(default_factory=lambda: np.zeros(0))
     factors: list[list[int]] = field(default_factory=list)  # smoother indices per range
     counted: bool = False  # its smoothed residuals have gone into `add_smoothed_residuals`
 
@@ -335,11 +338,14 @@ class GraphBuilder:
         record: bool,
         seeding: bool | None = None,
         recent_s: float | None = None,
+        rest: RestEvidence | None = None,
     ) -> None:
         """Declares the builder's state, group by group (`_init_*`); every attribute the
         smoother reads is set here once. `recent_s`: keep the newest seconds of motion
         factors and ranges for the online IMU noise fit (`recent`), where one runs (the
-        IMU noise or the constant-velocity prior's density `auto`, with ranges)."""
+        IMU noise or the constant-velocity prior's density `auto`, with ranges). `rest`:
+        the standstill tracker that weighs each range's LOS/NLOS evidence (None: every
+        range counts as independent)."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
@@ -362,6 +368,7 @@ class GraphBuilder:
         self.tag = applied_lever(config.extrinsics.tag_in_base, frozenset(streams))
         self.with_bias = self.g.estimate_range_bias
         self.nlos = self.g.nlos
+        self.rest = rest
         self.z0 = planar_height(anchors, float(start.position[2]))
         self._planar_noise: gtsam.noiseModel.Diagonal | None = None  # `_planar_prior`'s
         self._init_nlos_state()
@@ -1134,6 +1141,9 @@ class GraphBuilder:
         d_a = self.class_offset(a)
         r_los = z - pred - d_a
         mix = self.mixture
+        # at a standstill an anchor's repeated ranges share one error (`rest`)
+        ess = (self.rest.weights(t, a, z, mix.sigma_los) if self.rest is not None
+               else np.ones(len(t)))
         seg = (t - self.t0) // self.seg_ns
         g = np.zeros(len(t))
         prior = np.full(len(t), self.mixture.p_nlos)
@@ -1145,7 +1155,7 @@ class GraphBuilder:
             p_switch = switch_probabilities(t, a, mix.switch_time, self._switch_t)
             self._switch_t[a] = t  # t is time-sorted: each anchor's last stamp is written last
             jump = self._jump_evidence(t, a, r_los, e_pred - d_a) if self.jumps else None
-            g, prior = hmm_filter_by_anchor(a, ll_l, ll_n, p_switch, mix.p_nlos,
+            g, prior = hmm_filter_by_anchor(a, ll_l * ess, ll_n * ess, p_switch, mix.p_nlos,
                                             self.anchor_p, jump)
             # the excess over the anchor's whole LOS offset (the NLOS states' reference)
             r_exc = r_los + d_a - self.range_bias[a] if self.with_bias else r_los
@@ -1168,7 +1178,8 @@ class GraphBuilder:
         rec = self.records
         if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
-                                            len(rec.k), t_ns=t, evidence=evidence), slots))
+                                            len(rec.k), t_ns=t, evidence=evidence, ess=ess),
+                                slots))
         if self.recent is not None:
             self.recent.add_ranges(ka, a, z_raw, tag_kf)
         rec.k.append(np.full(len(t), ka, np.int64))

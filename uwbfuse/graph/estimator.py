@@ -22,8 +22,9 @@ EM step.
   while streaming, range factors rebuilt per EM round), solved by Levenberg-Marquardt with
   NLOS EM, range model, range scales and offsets chosen and fitted over the whole log,
   from the keyframe estimates as they left the fixed-lag window (`offline.solve`).
-  isam2-smoothed smooths its own online pass (the one isam2 runs: `graph.update_every`,
-  anchor offsets held as online); the online pass of `batch` updates iSAM2 once per
+  isam2-smoothed smooths its own online pass (the one isam2 runs, less the standstill
+  weights of `graph.rest`: `graph.update_every`, anchor offsets held as online); the
+  online pass of `batch` updates iSAM2 once per
   `BATCH_CHUNK` keyframes and keeps the configured anchor-offset prior (it only seeds LM).
   Smoothing only within the lag left each keyframe with the range scale, offsets and
   LOS/NLOS classes of its window (docs/results.md, "isam2-smoothed: the whole graph").
@@ -74,6 +75,7 @@ from uwbfuse.graph.evidence_window import EvidenceWindows, window_mask
 from uwbfuse.graph.imu import ImuBuffer, pose_from_xyzq
 from uwbfuse.graph.keys import B, C, D, L, V, X, nlos_key
 from uwbfuse.graph.online import OnlineSmoother
+from uwbfuse.graph.rest import RestEvidence
 from uwbfuse.graph.review_queue import ReviewQueue
 from uwbfuse.graph.uwb import los_subset_search, unique_inverse
 from uwbfuse.graph.wheel import WheelTrack, se2_between, se2_to_pose3
@@ -128,6 +130,12 @@ class GraphEstimator(EstimatorBase):
         self.init = initialiser
         self.imu = ImuBuffer()
         self.wheel = WheelTrack()
+        # standstills, which weigh the LOS/NLOS evidence of repeated ranges (`graph.rest`;
+        # with an IMU, isam2 only: the online passes of isam2-smoothed and batch seed a
+        # whole-log solve that weighs every range alike, and isam2-smoothed's held-out
+        # range-model choice on ISAS-Walk1, a near tie, flipped from the seed's classes)
+        self._rest = (RestEvidence(config.init, "wheel" in streams)
+                      if "imu" in streams and method is Method.ISAM2 else None)
         self.builder: GraphBuilder | None = None
         self._range_priors: RangePriors | None = None  # the NLOS classifier's, if any
         self.smoother: OnlineSmoother | None = None
@@ -189,12 +197,16 @@ class GraphEstimator(EstimatorBase):
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         """IMU batch: stamps (N,) ns, gyro (N,3) rad/s, specific force (N,3) m/s^2."""
         self.imu.add(t_ns, gyro, accel)
+        if self._rest is not None:
+            self._rest.add_imu(t_ns, gyro, accel)
         if self.builder is None:
             self.init.add_imu(t_ns, gyro, accel)
 
     def add_wheel(self, t_ns: np.ndarray, v: np.ndarray, omega: np.ndarray) -> None:
         """Wheel batch: stamps (N,) ns, forward speed (N,) m/s, yaw rate (N,) rad/s."""
         self.wheel.add(t_ns, v, omega)
+        if self._rest is not None:
+            self._rest.add_wheel(t_ns, v, omega)
         if self.builder is None:
             self.init.add_wheel(t_ns, v, omega)
 
@@ -316,7 +328,7 @@ class GraphEstimator(EstimatorBase):
         self.builder = GraphBuilder(
             self.cfg, self.anchors, self.streams, state, self.imu, self.wheel,
             record=self.method is not Method.ISAM2, seeding=self.method is Method.BATCH,
-            recent_s=ONLINE_WINDOW_S,
+            recent_s=ONLINE_WINDOW_S, rest=self._rest,
         )
         self._online_imu_inflation = self.builder.imu_inflation
         self.builder.use_priors(self._range_priors)
@@ -508,9 +520,11 @@ class GraphEstimator(EstimatorBase):
         if REVIEW_SEARCH:
             span = t >= now - round(mix.class_change_time * NS_PER_S)
             r_los, r_nlos = self._search_switch(b, mix, anchor, p, h, r_los, r_nlos, g_cur,
-                                                span)
+                                                span, cols["ess"][rows])
         ll_l, ll_n = mix.log_likelihoods(r_los, r_nlos, 0.03**2)
         ll_n = ll_n + cols["evidence"][rows]  # the classifier's
+        ess = cols["ess"][rows]  # repeated ranges at rest share one error (`rest`)
+        ll_l, ll_n = ll_l * ess, ll_n * ess
         jl = jump_log_likelihoods(residual_jumps_by_anchor(t, anchor, r_los), e - d, mix)
         p_switch = switch_probabilities(t, anchor, mix.switch_time)  # first: `prior` given
         g = hmm_smooth_by_anchor(anchor, ll_l, ll_n, p_switch, mix.p_nlos, jl, prior)
@@ -568,12 +582,13 @@ class GraphEstimator(EstimatorBase):
     def _search_switch(
         self, b: GraphBuilder, mix: NlosModel, anchor: np.ndarray, p: np.ndarray,
         h: np.ndarray, r_los: np.ndarray, r_nlos: np.ndarray, g_cur: np.ndarray,
-        span: np.ndarray,
+        span: np.ndarray, ess: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """`uwb.los_subset_search` over the ranges of the window at `span` (bool mask: those
         newer than the anchors' mean time between class changes, `NlosModel.
-        class_change_time`; tag positions `p`, predicted ranges `h`): the LOS and NLOS
-        residuals of those ranges against the better hypothesis' shifted track and NLOS
+        class_change_time`; tag positions `p`, predicted ranges `h`, each range's share of
+        one range's evidence `ess`, `graph.rest`): the LOS and NLOS residuals of those
+        ranges against the better hypothesis' shifted track and NLOS
         excesses once it has won SEARCH_PERSIST reviews in a row, and for as long after as
         the search still finds it the best; else as given.
 
@@ -588,7 +603,7 @@ class GraphEstimator(EstimatorBase):
         u = (p[span] - self.anchors.positions[a_s])[:, :2] / np.maximum(h[span], 1e-6)[:, None]
         # the shift's moment goes only into the head covariance (`_save_head_covariance`)
         hyp = los_subset_search(a_s, r_los[span], u, g_cur[span], mix,
-                                moment=self._head_cov_wanted())
+                                moment=self._head_cov_wanted(), weights=ess[span])
         self._shift_moment = np.zeros((2, 2)) if hyp is None else hyp.shift_moment
         better = (hyp is not None and hyp.gain > SEARCH_SWITCH_NATS
                   and bool(np.any(hyp.los != hyp.current)))
@@ -1147,6 +1162,8 @@ class GraphEstimator(EstimatorBase):
         out["smoother_rebuilds"] = list(self._rebuilds)
         out["ranges_reclassified_online"] = self._n_reviewed
         out["los_hypothesis_switches"] = self._n_switches
+        # ranges at a standstill whose LOS/NLOS evidence weighed less than one (`graph.rest`)
+        out["standstill_ranges"] = 0 if self._rest is None else self._rest.weighed
         rec = b.records.arrays()
         if self._batch is not None:
             g, w = self._batch.nlos_prob, self._batch.weight

@@ -20,7 +20,7 @@ import numpy as np
 from uwbfuse.graph.builder import ReviewBatch
 
 # per-range columns of a `ReviewBatch` the review reads (all (N,) but tag_kf (N,3))
-COLUMNS = ("anchor", "z", "t_ns", "prior", "evidence", "seg", "tag_kf", "g")
+COLUMNS = ("anchor", "z", "t_ns", "prior", "evidence", "ess", "seg", "tag_kf", "g")
 
 
 class ReviewQueue:

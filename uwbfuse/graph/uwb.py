@@ -112,7 +112,7 @@ class LosHypothesis:
     shift_moment: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
 
 
-_N_SUMS = 11  # per-anchor sums of `los_subset_search`
+_N_SUMS = 12  # per-anchor sums of `los_subset_search`
 
 
 @functools.cache
@@ -135,7 +135,7 @@ def unique_inverse(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def los_subset_search(
     anchor: np.ndarray, r: np.ndarray, u: np.ndarray, g: np.ndarray, model: NlosModel,
     sigma_shift: float = SEARCH_SHIFT_SIGMA, max_anchors: int = SEARCH_MAX_ANCHORS,
-    moment: bool = True,
+    moment: bool = True, weights: np.ndarray | None = None,
 ) -> LosHypothesis | None:
     """Which anchors are in LOS over a short window, searched over every LOS/NLOS subset.
 
@@ -155,7 +155,8 @@ def los_subset_search(
     g (N,) current P(NLOS). Ranges with |r| > 1 m are left out as gross outliers. Returns
     None when there are more than `max_anchors` anchors (2^M subsets) or too few ranges.
     `moment` False: the hypothesis' `shift_moment` is left zero (a caller that reports no
-    covariance skips its evidence weights; the hypothesis is the same).
+    covariance skips its evidence weights; the hypothesis is the same). `weights` (N,):
+    each range's share of one independent range's evidence (`rest.RestEvidence`; None: 1).
     """
     ok = np.abs(r) < 1.0
     anchor, r, u, g = anchor[ok], r[ok], u[ok], g[ok]
@@ -163,16 +164,19 @@ def los_subset_search(
     m = len(ids)
     if m == 0 or m > max_anchors or len(r) < 3 * m:
         return None
-    n = np.bincount(inv, minlength=m).astype(float)
-    # per anchor, the sums of u u^T (4), u (2), u r (2), r, r^2 and g: one bincount over
-    # the columns side by side (each anchor's sum of a column adds its rows in order, as a
-    # bincount of that column alone does)
-    cols = np.concatenate([(u[:, :, None] * u[:, None, :]).reshape(-1, 4), u, u * r[:, None],
-                           r[:, None], (r * r)[:, None], g[:, None]], axis=1)
+    count = np.bincount(inv, minlength=m).astype(float)
+    # per anchor, the sums of u u^T (4), u (2), u r (2), r, r^2, 1 (each weighted) and g:
+    # one bincount over the columns side by side (each anchor's sum of a column adds its
+    # rows in order, as a bincount of that column alone does)
+    wt = np.ones(len(r)) if weights is None else np.asarray(weights, np.float64)[ok]
+    wr = wt * r
+    cols = np.concatenate([(u[:, :, None] * u[:, None, :]).reshape(-1, 4) * wt[:, None],
+                           u * wt[:, None], u * wr[:, None], wr[:, None], (wr * r)[:, None],
+                           wt[:, None], g[:, None]], axis=1)
     sums = np.bincount((inv[:, None] * _N_SUMS + np.arange(_N_SUMS)).ravel(),
                        weights=cols.ravel(), minlength=m * _N_SUMS).reshape(m, _N_SUMS)
     suu, su, sur = sums[:, :4].reshape(m, 2, 2), sums[:, 4:6], sums[:, 6:8]
-    sr, srr, sg = sums[:, 8], sums[:, 9], sums[:, 10]
+    sr, srr, n, sg = sums[:, 8], sums[:, 9], sums[:, 10], sums[:, 11]
     p = min(max(model.p_nlos, 0.02), 0.98)
     # LOS: 1/2 d'A d - b'd + c per anchor
     wl = 1.0 / model.sigma_los**2
@@ -199,7 +203,7 @@ def los_subset_search(
     # EXCESS_FLOOR, room for LOS biases that have absorbed some NLOS) is not a hypothesis
     ex_all = (gm[None, :] - wn * np.einsum("mi,si->sm", su, delta)) / hmm_[None, :]
     invalid = np.any(~subsets & (ex_all < EXCESS_FLOOR), axis=1)
-    cur_w = sg / n
+    cur_w = sg / count
     current = cur_w < 0.5
     i_cur = int(np.sum(current.astype(int) << np.arange(m)))
     best = int(np.argmin(np.where(invalid, np.inf, cost)))

@@ -67,7 +67,7 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-_BLOCK_S = 0.1  # standstill test block length, s
+BLOCK_S = 0.1  # standstill test block length, s
 _RETRY_S = 0.5  # data time between two heading solves, s
 _N_SEEDS = 8
 _GYRO_BIAS_MAX = 0.1  # largest gyro turn-on bias a standstill may show, rad/s
@@ -184,10 +184,10 @@ def integrate_gyro(r0: F64, t_s: F64, gyro_base: F64) -> F64:
     return out
 
 
-def _block_still(
+def block_still(
     t: F64, x: F64, block_end: F64, thr_norm: float | None, thr_std: float | None
 ) -> NDArray[np.bool_]:
-    """Per block (ending at block_end, length _BLOCK_S): max norm < thr and std < thr.
+    """Per block (ending at block_end, length BLOCK_S): max norm < thr and std < thr.
 
     Vectorised with cumulative sums; empty blocks count as still.
     """
@@ -542,20 +542,20 @@ class Initialiser:
             return None, False, np.eye(3), zeros, zeros  # UWB only: nothing to level
         t0 = min(t0_candidates)
         t_end = t_ns
-        n_blocks = int((t_end - t0) / (_BLOCK_S * NS_PER_S))
-        block_end = (t0 + (np.arange(1, n_blocks + 1) * _BLOCK_S * NS_PER_S)).astype(np.int64)
+        n_blocks = int((t_end - t0) / (BLOCK_S * NS_PER_S))
+        block_end = (t0 + (np.arange(1, n_blocks + 1) * BLOCK_S * NS_PER_S)).astype(np.int64)
         still = np.ones(n_blocks, dtype=bool)
         if imu and n_blocks:
             # Gyro: the spread about the block mean (noise) below the threshold; the block
             # mean itself may hold a turn-on bias up to _GYRO_BIAS_MAX.
             gyro_thr = cfg.standstill_gyro_max
-            still &= _block_still(imu[0], imu[1], block_end, None, gyro_thr)
-            still &= _block_still(imu[0], imu[2], block_end, None, cfg.standstill_accel_std_max)
+            still &= block_still(imu[0], imu[1], block_end, None, gyro_thr)
+            still &= block_still(imu[0], imu[2], block_end, None, cfg.standstill_accel_std_max)
         if wheel and n_blocks:
             wv = np.column_stack([wheel[1], np.zeros_like(wheel[1])])
             wo = np.column_stack([wheel[2], np.zeros_like(wheel[2])])
-            still &= _block_still(wheel[0], wv, block_end, cfg.min_motion, None)
-            still &= _block_still(wheel[0], wo, block_end, cfg.standstill_gyro_max * 3, None)
+            still &= block_still(wheel[0], wv, block_end, cfg.min_motion, None)
+            still &= block_still(wheel[0], wo, block_end, cfg.standstill_gyro_max * 3, None)
         if imu and n_blocks:
             # Smooth accelerations hide from the per-block std: also compare each block's
             # mean specific force with the mean of the blocks before it.
@@ -577,14 +577,14 @@ class Initialiser:
                 np.linalg.norm(gmean, axis=1) < _GYRO_BIAS_MAX)
         moving = np.flatnonzero(~still)
         n_still = int(moving[0]) if len(moving) else n_blocks
-        still_s = n_still * _BLOCK_S
+        still_s = n_still * BLOCK_S
         ended = len(moving) > 0
         still_ok = still_s >= cfg.standstill_window
         self._still_s = still_s
         if not still_ok and not ended:
             self.last_reason = "waiting for a standstill window or motion"
             return None
-        still_end = int(t0 + n_still * _BLOCK_S * NS_PER_S)
+        still_end = int(t0 + n_still * BLOCK_S * NS_PER_S)
         r_level = np.eye(3)
         bg, ba = zeros, zeros
         if imu:
