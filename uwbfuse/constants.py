@@ -446,6 +446,9 @@ REST_RHO_REFRESH = 1.25
 # standard errors of a standstill's range slope (per anchor, against its radio noise) that
 # call it a glide: a two-sided test at about 0.3 %
 REST_TREND_Z = 3.0
+# probability that a standstill test (`graph.rest`: the velocity entering a still run, the
+# IMU's velocity within it) calls a true rest a glide, each time it is taken
+REST_FALSE_ALARM = 0.01
 # s: the IMU blocks' still verdicts kept for the ranges still to come (a keyframe's ranges
 # lag the newest IMU sample by a keyframe period and the data's batching, well under this)
 REST_HISTORY_S = 10.0

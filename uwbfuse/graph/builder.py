@@ -138,6 +138,8 @@ class ReviewBatch:
     evidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # each range's share of one independent range's evidence (`rest.RestEvidence`)
     ess: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # each range's factors' share of their information (`GraphBuilder.range_factors`)
+    share: np.ndarray | None = None
     factors: list[list[int]] = field(default_factory=list)  # smoother indices per range
     counted: bool = False  # its smoothed residuals have gone into `add_smoothed_residuals`
 
@@ -344,8 +346,8 @@ class GraphBuilder:
         smoother reads is set here once. `recent_s`: keep the newest seconds of motion
         factors and ranges for the online IMU noise fit (`recent`), where one runs (the
         IMU noise or the constant-velocity prior's density `auto`, with ranges). `rest`:
-        the standstill tracker that weighs each range's LOS/NLOS evidence (None: every
-        range counts as independent)."""
+        the standstill tracker that weighs each range's LOS/NLOS evidence and holds the
+        base at rest (None: every range counts as independent, no zero velocity)."""
         self.cfg = config
         self.g = config.graph
         self.anchors = anchors
@@ -1023,6 +1025,8 @@ class GraphBuilder:
             pred = pim.predict(gtsam.NavState(pose_a, vel_a), bias_a)
             new_pose, new_vel = pred.pose(), pred.velocity()
             inc.values.insert(V(k), new_vel)
+            if self.rest is not None and self.rest.at_rest(t_a, t_b):
+                self.zero_velocity(inc.graph, k)
             insert_bias(inc.values, B(k), bias_a)
             inc.stamps[V(k)] = self.stamp(k)
             inc.stamps[B(k)] = self.stamp(k)
@@ -1141,9 +1145,12 @@ class GraphBuilder:
         d_a = self.class_offset(a)
         r_los = z - pred - d_a
         mix = self.mixture
-        # at a standstill an anchor's repeated ranges share one error (`rest`)
+        # at a standstill an anchor's repeated ranges share one error (`rest`); where the
+        # base is held at rest its factors keep that share of their information too
         ess = (self.rest.weights(t, a, z, mix.sigma_los) if self.rest is not None
                else np.ones(len(t)))
+        held = self.rest.held(t) if self.rest is not None else None
+        share = np.where(held, ess, 1.0) if held is not None and held.any() else None
         seg = (t - self.t0) // self.seg_ns
         g = np.zeros(len(t))
         prior = np.full(len(t), self.mixture.p_nlos)
@@ -1168,7 +1175,7 @@ class GraphBuilder:
                 g[:] = 0.0
         else:
             e_pred = np.zeros(len(t))
-        slots = self.range_factors(inc, ka, a, z, tag_kf, seg, g, e_pred)
+        slots = self.range_factors(inc, ka, a, z, tag_kf, seg, g, e_pred, share=share)
         sig_l = self.robust_sigma() if self.robust_online else (
             mix.sigma_los if self.nlos else self.cfg.uwb.sigma)
         uwb = self.cfg.uwb
@@ -1178,7 +1185,8 @@ class GraphBuilder:
         rec = self.records
         if self.nlos and self.review and not self.robust_online:
             inc.reviews.append((ReviewBatch(ka, a, z, seg, tag_kf, prior, g.copy(),
-                                            len(rec.k), t_ns=t, evidence=evidence, ess=ess),
+                                            len(rec.k), t_ns=t, evidence=evidence, ess=ess,
+                                            share=share),
                                 slots))
         if self.recent is not None:
             self.recent.add_ranges(ka, a, z_raw, tag_kf)
@@ -1191,6 +1199,13 @@ class GraphBuilder:
         rec.w_online.append(w)
         rec.r_online.append(r_los)
         rec.evidence.append(evidence)
+
+    def zero_velocity(self, graph: gtsam.NonlinearFactorGraph, k: int) -> None:
+        """Add a zero velocity on V(k), a keyframe the standstill tracker holds at rest
+        (`rest.RestEvidence.at_rest`), std `zero_velocity_sigma` m/s."""
+        assert self.rest is not None
+        graph.add(gtsam.PriorFactorVector(V(k), np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(
+            3, self.rest.zero_velocity_sigma)))
 
     def class_offset(self, a: np.ndarray) -> np.ndarray:
         """The LOS range offset (m) each range of anchors `a` is classified LOS/NLOS against.
@@ -1232,12 +1247,14 @@ class GraphBuilder:
     def range_factors(
         self, inc: Increment, ka: int, a: np.ndarray, z: np.ndarray, tag_kf: np.ndarray,
         seg: np.ndarray, g: np.ndarray, e_guess: np.ndarray, rows: list[int] | None = None,
+        share: np.ndarray | None = None,
     ) -> list[list[int]]:
         """Add the LOS and NLOS factors (weights 1-g, g) of ranges attached to X(ka), in
         order: anchors `a`, ranges `z` m, tag positions (N,3) in the keyframe's base frame,
         NLOS segments, responsibilities `g` and NLOS state guesses `e_guess` m (N,), of
         the `rows` given (default all); return each range's factor positions in
-        `inc.graph`."""
+        `inc.graph`. `share` (N,): each range's factors keep that share of their
+        information (a range held at rest, `rest.RestEvidence.held`; None: all of it)."""
         mix = self.mixture
         uwb = self.cfg.uwb
         if self.robust_online:
@@ -1253,20 +1270,21 @@ class GraphBuilder:
         a_l, z_l = np.asarray(a).tolist(), np.asarray(z, np.float64).tolist()
         seg_l, g_l = np.asarray(seg).tolist(), np.asarray(g, np.float64).tolist()
         e_l = np.asarray(e_guess, np.float64).tolist()
+        sh_l = [1.0] * len(a_l) if share is None else np.asarray(share, np.float64).tolist()
         for j in range(len(a_l)) if rows is None else rows:
-            aj, zj, sj, gj, ej = a_l[j], z_l[j], seg_l[j], g_l[j], e_l[j]
+            aj, zj, sj, gj, ej, sh = a_l[j], z_l[j], seg_l[j], g_l[j], e_l[j], sh_l[j]
             t_tag = gtsam.Pose3(_ROT_IDENTITY, tag_kf[j])
             out = []
-            w_l = 1.0 - gj
+            w_l, w_n = (1.0 - gj) * sh, gj * sh
             if w_l > MIN_WEIGHT:
                 out.append(graph.size())
                 graph.add(range_factor_keyed(pose_key, anchor_key[aj], los_key[aj], zj,
                                              noise(sig_l / math.sqrt(w_l)), t_tag))
-            if gj > MIN_WEIGHT:
+            if w_n > MIN_WEIGHT:
                 key = self._nlos_state(inc, aj, sj, ej)
                 out.append(graph.size())
                 graph.add(range_factor_keyed(pose_key, anchor_key[aj], key, zj,
-                                             noise(mix.sigma_nlos / math.sqrt(gj)), t_tag))
+                                             noise(mix.sigma_nlos / math.sqrt(w_n)), t_tag))
             slots.append(out)
         return slots
 

@@ -387,6 +387,7 @@ class GraphEstimator(EstimatorBase):
             self._save_head_covariance(sm, b)
             self._save_leaving(sm, b)
             self._review(sm, b)
+            self._judge_rest(sm, b)
             self._fit_imu_online(sm, b)
         except (RuntimeError, ValueError) as exc:  # GTSAM raises both
             self._reanchor(f"{type(exc).__name__}: {exc}")
@@ -559,6 +560,38 @@ class GraphEstimator(EstimatorBase):
             queued.append(i)
         return queued, poses
 
+    def _judge_rest(self, sm: OnlineSmoother, b: GraphBuilder) -> None:
+        """A still run of the IMU (`rest.RestEvidence.pending`) judged rest or glide from
+        the smoothed velocity at its first keyframe (`decide`); a rest's keyframes so far,
+        clear of what the next update marginalises, get their zero velocities with it (the
+        later ones get theirs as they are built). The velocity must have come from before
+        the run (the keyframe before it solved): a run the graph started in is no rest."""
+        rest = self._rest
+        if rest is None:
+            return
+        k = b.k
+        now = b.time_of(k)
+        run = rest.pending(now)
+        if run is None:
+            return
+        j0 = max(-(-(run - b.t0) // b.period_ns), 0)  # the run's first keyframe
+        v = cov = None
+        if j0 >= 1:
+            try:
+                sm.velocity(j0 - 1)  # raises where the smoother has no keyframe before it
+                v, cov = sm.velocity(j0), sm.velocity_covariance(j0)
+            except (RuntimeError, IndexError, ValueError):
+                v = cov = None
+        if not rest.decide(run, v, cov):
+            return
+        margin = REVIEW_MARGIN_S + self._chunk / self.cfg.graph.keyframe_rate
+        oldest = now - round((self.cfg.graph.lag - margin) * NS_PER_S)
+        if self._review_inc is None:  # the factors the next update adds
+            self._review_inc = Increment()
+        for j in range(j0 + 1, k + 1):
+            if b.time_of(j) >= oldest and rest.at_rest(b.time_of(j - 1), b.time_of(j)):
+                b.zero_velocity(self._review_inc.graph, j)
+
     def _smoothed_excess(self, sm: OnlineSmoother, b: GraphBuilder, anchor: np.ndarray,
                          seg: np.ndarray, default: np.ndarray) -> np.ndarray:
         """Per range, the smoothed NLOS state of its (anchor, segment) where the smoother
@@ -657,7 +690,8 @@ class GraphEstimator(EstimatorBase):
             rows = changed.tolist()
             for j in rows:
                 inc.remove.extend(i for i in rb.factors[j] if i >= 0)
-            slots = b.range_factors(inc, rb.ka, rb.anchor, rb.z, rb.tag_kf, rb.seg, gb, eb, rows)
+            slots = b.range_factors(inc, rb.ka, rb.anchor, rb.z, rb.tag_kf, rb.seg, gb, eb, rows,
+                                    share=rb.share)
             inc.replaced.extend((rb, j, pos) for j, pos in zip(rows, slots, strict=True))
             q.set_g(i, changed, gb[changed])
             b.records.g_online[rb.record][changed] = gb[changed]
@@ -1164,6 +1198,8 @@ class GraphEstimator(EstimatorBase):
         out["los_hypothesis_switches"] = self._n_switches
         # ranges at a standstill whose LOS/NLOS evidence weighed less than one (`graph.rest`)
         out["standstill_ranges"] = 0 if self._rest is None else self._rest.weighed
+        # keyframes held at rest by a zero velocity (`graph.rest`)
+        out["standstill_keyframes"] = 0 if self._rest is None else self._rest.zero_velocities
         rec = b.records.arrays()
         if self._batch is not None:
             g, w = self._batch.nlos_prob, self._batch.weight

@@ -16,9 +16,25 @@ sigma_los: the model's LOS std, the whole error of one range), N such ranges car
 evidence of n_eff(N) = N / (1 + (N - 1) rho) independent ones, so the n-th range of a rest
 carries n_eff(n) - n_eff(n - 1) of one range's (`RestEvidence.weights`): its LOS/NLOS
 log-likelihoods are scaled by that in the online classes (insertion filter, review, LOS
-subset search). The range factors keep their whole information: taken away with a zero
-velocity in its place, the rest was better on ISAS-Walk1 but a glide that the still test
-passes for its first second then stopped the track (docs/results.md, session 40).
+subset search).
+
+The IMU's still test sees spreads, not means: a glide at constant velocity and a gentle
+constant acceleration pass it as a rest does, so a still run says nothing of the velocity
+by itself. A run is held as a rest (`held`, `at_rest`) only on two tests at false-alarm
+probability REST_FALSE_ALARM each (docs/results.md, "A standstill test that tells a glide
+from a rest", session 41):
+- entering (`decide`): the graph's smoothed velocity at the run's first keyframe, whose
+  velocity the IMU carried in from the motion before, is zero within its marginal
+  covariance (chi-square, 3 degrees of freedom). A run that began before the graph's
+  start has no such estimate (the start's velocity prior is an assumption): never held.
+- staying (`at_rest`): the velocity the IMU integrates from the run's first
+  `standstill_window` (`QuietDrift`: specific force minus the window's mean, turned by the
+  gyro's rotation since) is zero within its noise; a start the still test cannot see ends
+  the rest.
+While a run is held, the graph takes a zero velocity at its keyframes
+(`zero_velocity_sigma`) and the run's range factors keep only their share of one range's
+information (the share the classes get): without the zero velocity, ranges so weighed no
+longer hold the track (session 40).
 
 A standstill is a run of IMU blocks (`BLOCK_S`) that pass the start's still test
 (`initialisation.block_still`: gyro and specific-force spreads under `[init]
@@ -35,9 +51,11 @@ import math
 from collections import deque
 
 import numpy as np
+from scipy.stats import chi2
 
 from uwbfuse.config import InitConfig
 from uwbfuse.constants import (
+    REST_FALSE_ALARM,
     REST_HISTORY_S,
     REST_MIN_PAIRS,
     REST_RHO_REFRESH,
@@ -48,11 +66,77 @@ from uwbfuse.positioning.start import wheels_still
 from uwbfuse.streams import NS_PER_S
 
 _BLOCK_NS = round(BLOCK_S * NS_PER_S)
+# the chi-square (3 degrees of freedom) a velocity at rest stays under but for
+# REST_FALSE_ALARM of the time
+_CHI2_REST = float(chi2.ppf(1.0 - REST_FALSE_ALARM, 3))
 
 
 def effective_count(n: int, rho: float) -> float:
     """Independent ranges worth n ranges whose errors are equicorrelated at rho."""
     return n / (1.0 + (n - 1) * rho) if n > 0 else 0.0
+
+
+def _rotate(theta: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectors v (N,3) turned by the rotation vectors theta (N,3) rad (Rodrigues)."""
+    phi = np.linalg.norm(theta, axis=1, keepdims=True)
+    k = theta / np.maximum(phi, 1e-12)
+    c, s = np.cos(phi), np.sin(phi)
+    return v * c + np.cross(k, v) * s + k * np.sum(k * v, axis=1, keepdims=True) * (1.0 - c)
+
+
+class QuietDrift:
+    """The velocity (m/s, 3) the IMU integrates over a still run after its first
+    `window_ns`: each specific-force sample turned into the window's body frame by the
+    gyro's rotation since (rate minus the window's mean rate: at rest the gyro reads its
+    bias), minus the window's mean specific force (gravity and the accelerometer bias, as
+    long as the base does not move). Zero at rest; a start from rest that the still test
+    cannot see (a constant acceleration has no spread) grows it at the acceleration."""
+
+    def __init__(self, start_ns: int, window_ns: int) -> None:
+        self.start = start_ns
+        self.ref_end = start_ns + window_ns
+        self._window_s = window_ns / NS_PER_S
+        self._n = 0  # reference samples
+        # sums over the reference of its specific force, its square, the rate, its square
+        self._sums = np.zeros((4, 3))
+        self._theta = np.zeros(3)  # rotation since the reference, rad (its body frame)
+        self._t = self.ref_end  # newest sample integrated, ns
+        self.dv = np.zeros(3)
+
+    def add(self, t: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
+        """Time-sorted samples of the run (stamps ns, rad/s, m/s^2), each given once."""
+        ref = t < self.ref_end
+        if ref.any():
+            self._n += int(ref.sum())
+            self._sums += np.stack([accel[ref].sum(0), (accel[ref] ** 2).sum(0),
+                                    gyro[ref].sum(0), (gyro[ref] ** 2).sum(0)])
+        if self._n < 2 or ref.all():
+            return
+        t, gyro, accel = t[~ref], gyro[~ref], accel[~ref]
+        f_ref, w_ref = self._sums[0] / self._n, self._sums[2] / self._n
+        dt = np.diff(t, prepend=self._t) / NS_PER_S
+        theta = self._theta + np.cumsum((gyro - w_ref) * dt[:, None], axis=0)
+        self.dv += ((_rotate(theta, accel) - f_ref) * dt[:, None]).sum(0)
+        self._theta, self._t = theta[-1], int(t[-1])
+
+    def chi2(self, sigma_zero: float) -> float:
+        """dv against its noise at rest, summed over the axes. Over the span T since the
+        reference (n samples, period dt), from the reference's spreads of specific force s_f
+        (m/s^2) and rate s_w (rad/s): the specific force's white noise, s_f^2 T dt, and its
+        mean's error, s_f^2 T^2 / n; the tilt that the rate's mean error (s_w^2 / n, T^4 /
+        4) and white noise (s_w^2 dt, T^3 / 3) leave, turning the mean specific force f
+        (|f|^2 - f_i^2 on axis i); the zero velocities at both ends, `sigma_zero` m/s each."""
+        if self._n < 2:
+            return 0.0
+        n = self._n
+        f, w = self._sums[0] / n, self._sums[2] / n
+        var_f = np.maximum(self._sums[1] / n - f**2, 0.0)
+        var_w = float(np.mean(np.maximum(self._sums[3] / n - w**2, 0.0)))
+        span = (self._t - self.ref_end) / NS_PER_S
+        dt = self._window_s / n  # the sample period, s
+        tilt = (float(f @ f) - f**2) * var_w * (span**4 / (4.0 * n) + dt * span**3 / 3.0)
+        var = var_f * (span * dt + span**2 / n) + tilt + 2.0 * sigma_zero**2
+        return float(np.sum(self.dv**2 / var))
 
 
 class RestEvidence:
@@ -82,6 +166,13 @@ class RestEvidence:
         self._s_w = 0.0
         self._rho_at = 0
         self.weighed = 0  # ranges given a weight under 1 so far
+        # each recent still run's verdict (start ns: held as a rest), `decide`/`at_rest`
+        self._verdict: dict[int, bool] = {}
+        self._drift: QuietDrift | None = None  # the current still run's
+        # m/s: the zero velocity's std, the velocity a specific force within the still
+        # test's spread (standstill_accel_std_max) builds over one still block
+        self.zero_velocity_sigma = cfg.standstill_accel_std_max * BLOCK_S
+        self.zero_velocities = 0  # keyframes held at rest so far
 
     def add_imu(self, t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> None:
         """A time-sorted IMU batch: stamps ns, gyro rad/s, specific force m/s^2."""
@@ -131,6 +222,13 @@ class RestEvidence:
             self._ends.append(end)
             self._runs.append(self._run)
         self._done = n
+        if self._run is not None:  # the current still run's samples: its IMU drift
+            if self._drift is None or self._drift.start != self._run:
+                self._drift = QuietDrift(self._run, round(self.cfg.standstill_window
+                                                          * NS_PER_S))
+            lo = max(self._run, int(ends[0]) - _BLOCK_NS)
+            k0, k1 = np.searchsorted(t, [lo, int(ends[-1])], side="right")
+            self._drift.add(t[k0:k1], g[k0:k1], a[k0:k1])
         while self._ends and self._ends[0] < self._ends[-1] - REST_HISTORY_S * NS_PER_S:
             self._ends.popleft()
             self._runs.popleft()
@@ -219,8 +317,57 @@ class RestEvidence:
             r = self.rho(sigma_los)
             if r > 0.0:
                 self._trend[a] = self._trending(sums, ts, sigma_los)
-            if t - run >= window and not any(self._trend.values()):
+            if t - run >= window and (self._verdict.get(run, False)
+                                      or not any(self._trend.values())):
                 n = int(sums[0])
                 w[i] = effective_count(n, r) - effective_count(n - 1, r)
                 self.weighed += int(w[i] < 1.0)
         return w
+
+    def pending(self, t_ns: int) -> int | None:
+        """The start (ns) of the still run at t_ns (ns) when it has lasted
+        `standstill_window` and awaits its verdict (`decide`), else None."""
+        self._judge()
+        run = self._run_at(t_ns)
+        if (run is None or run in self._verdict
+                or t_ns - run < round(self.cfg.standstill_window * NS_PER_S)):
+            return None
+        return run
+
+    def decide(self, run: int, v: np.ndarray | None, cov: np.ndarray | None) -> bool:
+        """Judge the still run that began at `run` (ns) from the graph's smoothed velocity
+        `v` (m/s, map) at the run's first keyframe and its marginal covariance `cov`
+        ((m/s)^2; None: the graph has no velocity from before the run): a rest (held, True)
+        when v' cov^-1 v is under the chi-square quantile at 1 - REST_FALSE_ALARM."""
+        held = False
+        if v is not None and cov is not None:
+            try:
+                held = float(v @ np.linalg.solve(cov, v)) < _CHI2_REST
+            except np.linalg.LinAlgError:
+                held = False
+        recent = set(self._runs)
+        self._verdict = {r: h for r, h in self._verdict.items() if r in recent}
+        self._verdict[run] = held
+        return held
+
+    def at_rest(self, t_a: int, t_b: int) -> bool:
+        """Whether the graph takes a zero velocity over t_a..t_b (ns, a keyframe interval):
+        both in a still run held as a rest (`decide`) whose IMU-integrated velocity
+        (`QuietDrift`) is zero within its noise; when it is no longer, the run is a rest no
+        more (a start the still test cannot see)."""
+        self._judge()
+        run = self._run_at(t_b)
+        if run is None or run > t_a or not self._verdict.get(run, False):
+            return False
+        d = self._drift
+        if d is not None and d.start == run and d.chi2(self.zero_velocity_sigma) > _CHI2_REST:
+            self._verdict[run] = False
+            return False
+        self.zero_velocities += 1
+        return True
+
+    def held(self, t_ns: np.ndarray) -> np.ndarray:
+        """Whether each stamp (ns) lies in a still run held as a rest (`decide`), (N,)."""
+        self._judge()
+        runs = [self._run_at(t) for t in np.asarray(t_ns).tolist()]
+        return np.array([r is not None and self._verdict.get(r, False) for r in runs], bool)
