@@ -220,6 +220,10 @@ class _Track:
     free_velocity: bool  # start velocity unknown (IMU-only track not starting at rest)
     sens: F64  # (N,3,P) d(d)/d(params): accel bias, gyro bias, [tilt] (IMU-only track)
     sens_sigma: F64  # (P,) prior std of those parameters
+    # (3,P) d(vel)/d(params) and the rotation vector (W' axes) of rot's change per unit
+    # parameter, at the last query time: the solved corrections move the end state too
+    vel_sens: F64
+    rot_sens: F64
 
 
 @dataclass
@@ -699,7 +703,9 @@ class Initialiser:
         For an IMU-only track, `sens` holds the first-order sensitivities of d to the
         accelerometer bias, gyro bias and (without a still start) the level tilt, each
         found by re-running the strapdown with the parameter perturbed (finite
-        differences); the heading solve estimates these small corrections.
+        differences); the heading solve estimates these small corrections, and
+        `vel_sens`, `rot_sens` (the same runs' end velocity and attitude) carry them into
+        the start state.
         """
         if self.has_wheel:
             tw = wheel[0].astype(np.float64) / NS_PER_S
@@ -725,13 +731,20 @@ class Initialiser:
             vel = np.column_stack(
                 [v[k_last] * np.cos(yq), v[k_last] * np.sin(yq), np.zeros_like(yq)]
             )
-            return _Track(d, rq, vel, False, np.zeros((len(tq), 3, 0)), np.zeros(0))
+            return _Track(d, rq, vel, False, np.zeros((len(tq), 3, 0)), np.zeros(0),
+                          np.zeros((3, 0)), np.zeros((3, 0)))
         ti = imu[0].astype(np.float64) / NS_PER_S
         rot0 = integrate_gyro(r_level, ti, (imu[1] - gyro_bias) @ self.R_base_imu.T)
         d0, rq, vq = self._imu_strapdown(imu, gyro_bias, accel_bias, r_level, t_start_s, tq,
                                          rot0)
         icfg = self.config.imu
-        cols, sigmas = [], []
+        cols, sigmas, v_cols, r_cols = [], [], [], []
+
+        def add(d1: F64, r1: F64, v1: F64, h: float) -> None:
+            cols.append((d1 - d0) / h)
+            v_cols.append((v1[-1] - vq[-1]) / h)
+            r_cols.append(Rotation.from_matrix(r1[-1] @ rq[-1].T).as_rotvec() / h)
+
         h_a, h_g, h_t = 0.01, 1e-3, 1e-3
         f_lvl = self._f_level
         for k in range(3):
@@ -741,8 +754,7 @@ class Initialiser:
             # With a still start the level follows the bias: gravity = mean f - bias.
             rl = level_from_accel(self.R_base_imu @ (f_lvl - ba)) if still_ok else r_level
             rot1 = np.einsum("ij,njk->nik", rl @ r_level.T, rot0)
-            d1, _, _ = self._imu_strapdown(imu, gyro_bias, ba, rl, t_start_s, tq, rot1)
-            cols.append((d1 - d0) / h_a)
+            add(*self._imu_strapdown(imu, gyro_bias, ba, rl, t_start_s, tq, rot1), h_a)
             sigmas.append(icfg.accel_bias_sigma)
         # Gyro bias left after the standstill mean (3 sigma of its noise plus drift).
         bg_sigma = (3.0 * icfg.gyro_noise_density / math.sqrt(max(self._still_s, 1e-3))
@@ -751,9 +763,8 @@ class Initialiser:
         for k in range(3):
             e = np.zeros(3)
             e[k] = 1.0
-            d1, _, _ = self._imu_strapdown(imu, gyro_bias + h_g * e, accel_bias, r_level,
-                                           t_start_s, tq)
-            cols.append((d1 - d0) / h_g)
+            add(*self._imu_strapdown(imu, gyro_bias + h_g * e, accel_bias, r_level,
+                                     t_start_s, tq), h_g)
             sigmas.append(bg_sigma)
         if not still_ok:
             for k in range(2):
@@ -761,12 +772,12 @@ class Initialiser:
                 e[k] = h_t
                 tilt = Rotation.from_rotvec(e).as_matrix()
                 rot1 = np.einsum("ij,njk->nik", tilt, rot0)
-                d1, _, _ = self._imu_strapdown(imu, gyro_bias, accel_bias, tilt @ r_level,
-                                               t_start_s, tq, rot1)
-                cols.append((d1 - d0) / h_t)
+                add(*self._imu_strapdown(imu, gyro_bias, accel_bias, tilt @ r_level,
+                                         t_start_s, tq, rot1), h_t)
                 sigmas.append(_TILT_SIGMA)
         sens = np.stack(cols, axis=2)
-        return _Track(d0, rq, vq, not v0_known, sens, np.array(sigmas))
+        return _Track(d0, rq, vq, not v0_known, sens, np.array(sigmas),
+                      np.stack(v_cols, axis=1), np.stack(r_cols, axis=1))
 
     # ------------------------------------------------------------------ heading
     def _heading_window(self, t_ns: int, imu: tuple, wheel: tuple, rng: tuple,
@@ -1093,8 +1104,14 @@ def accept_start(
     rz = rot_z(yaw0)
     d_now = trk.d[-1] + (trk.sens[-1] @ x[i_s:i_b] if n_s else 0.0)
     pos = p0 + v0 * dt_now + rz @ d_now
+    # the end attitude and velocity with the solved bias and tilt corrections (first order,
+    # as the position's): a gyro bias b left in a strapdown window of t seconds tilts its end
+    # by b t and its velocity by g b t^2 / 2 (0.02 rad/s over 7 s: 8 deg, 4.8 m/s)
     r_now = rz @ trk.rot[-1]
     vel = v0 + rz @ trk.vel[-1]
+    if n_s:
+        r_now = rz @ Rotation.from_rotvec(trk.rot_sens @ x[i_s:i_b]).as_matrix() @ trk.rot[-1]
+        vel = vel + rz @ (trk.vel_sens @ x[i_s:i_b])
     ba, bg = accel_bias.copy(), gyro_bias.copy()
     if n_s:
         ba = ba + x[i_s:i_s + 3]
