@@ -893,13 +893,14 @@ def test_keyframes_per_update_solves_every_keyframe_only_under_an_imu_alone():
 def test_imu_and_uwb_without_wheels_gain_from_solving_every_keyframe():
     """Test that on an IMU + UWB log (no wheels) the default (every keyframe solved) beats
     three keyframes per update, whose output in between is an IMU prediction from the
-    newest solved keyframe (measured, room seed 0, 60 s: 0.026 against 0.034 m; seeds 1, 2
-    0.031 / 0.034, 0.036 / 0.037. Before session 39's start fix, whose 0.9 m start error
+    newest solved keyframe (measured, room seed 0, 60 s: 0.026 against 0.030 m since session
+    41's start velocity fix, 0.034 m before it; seeds 1, 2 0.031 / 0.034, 0.036 / 0.037
+    before it. Before session 39's start fix, whose 0.9 m start error
     every keyframe solved took out faster: 0.067 against 0.136 m)."""
     log = _drop(simulate("room", 60.0, 0), "wheel")
     auto = estimate(log, Method.ISAM2, Config(), covariance=False)
     three = estimate(log, Method.ISAM2, Config(graph={"update_every": 3}), covariance=False)
-    assert _ate(auto.trajectory, log) < 0.85 * _ate(three.trajectory, log)
+    assert _ate(auto.trajectory, log) < 0.9 * _ate(three.trajectory, log)
 
 
 def _class_flips(rc) -> int:
