@@ -51,6 +51,7 @@ import math
 from collections import deque
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from uwbfuse.config import InitConfig
@@ -74,14 +75,6 @@ _CHI2_REST = float(chi2.ppf(1.0 - REST_FALSE_ALARM, 3))
 def effective_count(n: int, rho: float) -> float:
     """Independent ranges worth n ranges whose errors are equicorrelated at rho."""
     return n / (1.0 + (n - 1) * rho) if n > 0 else 0.0
-
-
-def _rotate(theta: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Vectors v (N,3) turned by the rotation vectors theta (N,3) rad (Rodrigues)."""
-    phi = np.linalg.norm(theta, axis=1, keepdims=True)
-    k = theta / np.maximum(phi, 1e-12)
-    c, s = np.cos(phi), np.sin(phi)
-    return v * c + np.cross(k, v) * s + k * np.sum(k * v, axis=1, keepdims=True) * (1.0 - c)
 
 
 class QuietDrift:
@@ -116,7 +109,8 @@ class QuietDrift:
         f_ref, w_ref = self._sums[0] / self._n, self._sums[2] / self._n
         dt = np.diff(t, prepend=self._t) / NS_PER_S
         theta = self._theta + np.cumsum((gyro - w_ref) * dt[:, None], axis=0)
-        self.dv += ((_rotate(theta, accel) - f_ref) * dt[:, None]).sum(0)
+        turned = Rotation.from_rotvec(theta).apply(accel)
+        self.dv += ((turned - f_ref) * dt[:, None]).sum(0)
         self._theta, self._t = theta[-1], int(t[-1])
 
     def chi2(self, sigma_zero: float) -> float:
